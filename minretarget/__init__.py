@@ -1,0 +1,1 @@
+"""minretarget: correspondence-free online dense human motion retargeting on the CPU."""

@@ -1,0 +1,1 @@
+"""training: the PyTorch reference for minretarget: data, models, losses, training, export."""
