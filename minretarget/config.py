@@ -1,0 +1,51 @@
+"""Layer sizes of the three networks, shared by the runtime and the torch reference.
+
+The defaults are the paper's sizes (Rekik et al. 2024, supplementary tables); smaller
+configurations (narrower layers, one GRU layer) are valid too and are what CPU training uses.
+The config travels inside every weights file as JSON, so a file always says its own shape.
+"""
+import dataclasses
+import json
+
+from .conventions import NUM_JOINTS
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    # SKR: PointNet. Per-point 1x1 convolutions 3 -> w0 (then the w0 x w0 feature transform)
+    # -> w1 -> w2, max-pool over points, MLP w2 -> h0 -> h1 -> J*3. The 3x3 and w0 x w0
+    # transform networks (STN) use the same point widths and head widths.
+    skr_point_widths: tuple = (64, 128, 1024)
+    skr_head_widths: tuple = (512, 256)
+    # SMRM: encoder and decoder GRUs, each `smrm_layers` deep and `smrm_hidden` wide.
+    smrm_hidden: int = 512
+    smrm_layers: int = 2
+    # SKIN: per-point MLP (J*3 offsets) -> widths -> J, softmax.
+    skin_widths: tuple = (256, 256)
+    num_joints: int = NUM_JOINTS
+
+    def __post_init__(self):
+        # Accept lists (from JSON) and store tuples so the config stays hashable.
+        for field in ("skr_point_widths", "skr_head_widths", "skin_widths"):
+            object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
+        if len(self.skr_point_widths) != 3 or len(self.skr_head_widths) != 2:
+            raise ValueError("skr_point_widths needs 3 widths and skr_head_widths 2, got "
+                             f"{self.skr_point_widths} and {self.skr_head_widths}")
+        if not self.skin_widths or self.smrm_layers < 1 or self.smrm_hidden < 1:
+            raise ValueError(f"invalid config {self}")
+        if self.num_joints != NUM_JOINTS:
+            raise ValueError(f"num_joints must be {NUM_JOINTS}, got {self.num_joints}")
+        if min(self.skr_point_widths + self.skr_head_widths + self.skin_widths) < 1:
+            raise ValueError(f"every width must be positive, got {self}")
+
+    def to_json(self):
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text):
+        values = json.loads(text)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown model config fields {sorted(unknown)}")
+        return cls(**values)

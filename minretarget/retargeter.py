@@ -1,0 +1,106 @@
+"""The online retargeter: a target body, then source frames one at a time.
+
+    retargeter = Retargeter.from_weights()            # the shipped default weights
+    retargeter.set_target(target_points)              # (V, 3) T-pose: skeleton + skinning, once
+    for points in frames:                             # (P, 3) each, any P, any order
+        frame = retargeter.step(points)               # frame.vertices (V, 3) in target order
+"""
+from typing import NamedTuple
+
+import numpy as np
+
+from .conventions import MIN_POINTS
+from .kinematics import forward_kinematics, skinning_transforms
+from .skin import linear_blend_skinning, skinning_weights
+from .skr import regress_joints
+from .smrm import retarget_step
+from .validation import as_float32_array, as_point_cloud
+from .weights import load_weights
+
+
+class Target(NamedTuple):
+    """What is computed once per target body."""
+    points: np.ndarray          # (V, 3) float32 T-pose points, metres
+    faces: np.ndarray           # (F, 3) int64 triangle indices into points, or None
+    tpose_joints: np.ndarray    # (J, 3) float32 its skeleton (SKR), metres
+    skin_weights: np.ndarray    # (V, J) float32 its skinning weights (SKIN)
+
+
+class RetargetedFrame(NamedTuple):
+    vertices: np.ndarray        # (V, 3) float32 the target's points posed, target order, metres
+    joints: np.ndarray          # (J, 3) float32 the target's posed joints, metres
+    rotations: np.ndarray       # (J, 4) float32 local joint quaternions (w, x, y, z)
+    root: np.ndarray            # (3,) float32 pelvis position, metres
+    source_joints: np.ndarray   # (J, 3) float32 the source skeleton SKR saw, metres
+
+
+class Retargeter:
+    def __init__(self, weights):
+        self.weights = weights
+        self.target = None
+        self._state = None
+
+    @classmethod
+    def from_weights(cls, path=None):
+        """A retargeter with the weights file at ``path`` (None: the shipped default)."""
+        return cls(load_weights(path))
+
+    def set_target(self, points, faces=None):
+        """Set the body to animate and restart the stream.
+
+        Args:
+            points: (V, 3) target points or mesh vertices in T-pose, metres, +Y up, facing +Z.
+            faces: optional (F, 3) integer triangles, kept with the target for writers.
+        """
+        points = as_point_cloud(points, "target points", MIN_POINTS)
+        if faces is not None:
+            faces = np.asarray(faces)
+            if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype,
+                                                                            np.integer):
+                raise ValueError(f"faces must be an (F, 3) integer array, got {faces.shape} "
+                                 f"{faces.dtype}")
+            if faces.size and (faces.min() < 0 or faces.max() >= len(points)):
+                raise ValueError(f"faces index vertices outside [0, {len(points)})")
+            faces = faces.astype(np.int64)
+        tpose_joints = regress_joints(points, self.weights.skr)
+        weights = skinning_weights(points, tpose_joints, self.weights.skin)
+        self.target = Target(points, faces, tpose_joints, weights)
+        self.reset()
+
+    def reset(self):
+        """Forget the motion seen so far (the target stays)."""
+        self._state = None
+
+    def step(self, points):
+        """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
+        if self.target is None:
+            raise RuntimeError("call set_target before step")
+        points = as_point_cloud(points, "source points", MIN_POINTS)
+        source_joints = regress_joints(points, self.weights.skr)
+        return self.step_skeleton(source_joints)
+
+    def step_skeleton(self, source_joints):
+        """Retarget one frame given the source skeleton (J, 3) directly (skips SKR)."""
+        if self.target is None:
+            raise RuntimeError("call set_target before step_skeleton")
+        target = self.target
+        rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
+                                                     source_joints, target.tpose_joints)
+        joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
+        transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
+        vertices = linear_blend_skinning(target.points, target.skin_weights, transforms)
+        return RetargetedFrame(vertices, joints, rotations, root,
+                               as_float32_array(source_joints, "source_joints", (None, 3)))
+
+    def run(self, frames):
+        """Retarget an iterable of (P, 3) source frames lazily, one RetargetedFrame each.
+
+        Memory stays constant in the number of frames: nothing is kept between frames but
+        the recurrent state. The stream restarts (``reset``) first.
+        """
+        self.reset()
+        for index, points in enumerate(frames):
+            try:
+                yield self.step(points)
+            except ValueError as error:
+                raise ValueError(f"frame {index}: {error}") from None

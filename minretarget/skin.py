@@ -1,0 +1,84 @@
+"""Stage 3, SKIN: the skinning-weight field and linear blend skinning (LBS).
+
+Skinning weights are computed once per target: per point, the MLP reads its offsets to the J
+T-pose joints (J*3, metres) and a softmax turns J logits into weights that are >= 0 and sum
+to one. Each frame, LBS blends the joints' affine maps (``kinematics.skinning_transforms``)
+with those weights and applies the blend to the T-pose point.
+"""
+import numpy as np
+
+from ._jit import kernel, parallel_kernel, prange
+from .conventions import NUM_JOINTS
+from .nn import mlp
+from .validation import as_float32_array
+
+
+def skinning_weights(points, tpose_joints, weights, chunk=4096):
+    """Skinning weights of target points.
+
+    Args:
+        points: (V, 3) float32 target points in T-pose, metres.
+        tpose_joints: (J, 3) float32 the target's T-pose joints, metres.
+        weights: MLP weights of the skinning field.
+        chunk: points per kernel call, bounding the (chunk, width) activations in memory.
+    Returns:
+        (V, J) float32 weights, each row >= 0 and summing to 1.
+    """
+    points = as_float32_array(points, "points", (None, 3))
+    tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
+    out = np.empty((points.shape[0], NUM_JOINTS), dtype=np.float32)
+    for start in range(0, points.shape[0], chunk):
+        out[start:start + chunk] = _skinning_weights_kernel(
+            points[start:start + chunk], tpose_joints, weights)
+    return out
+
+
+@kernel
+def _skinning_weights_kernel(points, tpose_joints, weights):
+    v, j = points.shape[0], tpose_joints.shape[0]
+    offsets = np.empty((v, j * 3), dtype=np.float32)
+    for i in range(v):
+        for k in range(j):
+            for a in range(3):
+                offsets[i, 3 * k + a] = points[i, a] - tpose_joints[k, a]
+    logits = mlp(offsets, weights)                                       # (V, J)
+    for i in range(v):   # softmax, shifted by the row maximum so exp cannot overflow
+        shift = logits[i].max()
+        total = np.float32(0.0)
+        for k in range(j):
+            logits[i, k] = np.exp(logits[i, k] - shift)
+            total += logits[i, k]
+        logits[i] /= total
+    return logits
+
+
+def linear_blend_skinning(points, skin_weights, transforms):
+    """Pose T-pose points with per-joint affine maps.
+
+    Args:
+        points: (V, 3) float32 T-pose points, metres.
+        skin_weights: (V, J) float32 skinning weights.
+        transforms: (J, 3, 4) float32 T-pose -> posed maps (``kinematics.skinning_transforms``).
+    Returns:
+        (V, 3) float32 posed points, metres; row i stays point i.
+    """
+    points = as_float32_array(points, "points", (None, 3))
+    skin_weights = as_float32_array(skin_weights, "skin_weights", (points.shape[0], None))
+    transforms = as_float32_array(transforms, "transforms", (skin_weights.shape[1], 3, 4))
+    out = np.empty_like(points)
+    _linear_blend_skinning_kernel(points, skin_weights, transforms, out)
+    return out
+
+
+@parallel_kernel
+def _linear_blend_skinning_kernel(points, skin_weights, transforms, out):
+    for i in prange(points.shape[0]):
+        blend = np.zeros((3, 4), dtype=np.float32)   # the weighted mean of the joint maps
+        for k in range(transforms.shape[0]):
+            w = skin_weights[i, k]
+            for a in range(3):
+                for b in range(4):
+                    blend[a, b] += w * transforms[k, a, b]
+        for a in range(3):
+            out[i, a] = (blend[a, 0] * points[i, 0] + blend[a, 1] * points[i, 1]
+                         + blend[a, 2] * points[i, 2] + blend[a, 3])

@@ -1,0 +1,184 @@
+"""The weights file: one flat ``.npz`` holding all three networks, loaded without pickle.
+
+Keys are the dotted paths of the runtime's weight NamedTuples, e.g.
+``skr.regressor.point.0.weight`` or ``smrm.encoder.1.hidden_weight``; linear weights are
+stored (in, out), the layout the kernels multiply with. Besides the arrays:
+    format_version   int scalar, FORMAT_VERSION
+    config           JSON string of minretarget.config.ModelConfig
+    metadata         JSON string: free-form provenance (recipe, data, commit)
+Arrays may be stored as float16 or float32; they are always float32 in memory.
+"""
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from .config import ModelConfig
+from .nn import MLP, Dense
+from .skr import PointNetWeights, SKRWeights
+from .smrm import GRULayer, SMRMWeights
+
+FORMAT_VERSION = 1
+DEFAULT_WEIGHTS = Path(__file__).parent / "data" / "default_weights.npz"
+_HEADER_KEYS = ("format_version", "config", "metadata")
+
+
+class Weights(NamedTuple):
+    config: ModelConfig
+    skr: SKRWeights
+    smrm: SMRMWeights
+    skin: MLP          # the skinning field
+    metadata: dict
+
+
+class _Shape(tuple):
+    """A leaf of the weight template: the shape an array must have."""
+
+
+def _mlp_template(in_width, hidden_widths, out_width):
+    hidden, width = [], in_width
+    for h in hidden_widths:
+        hidden.append(Dense(_Shape((width, h)), _Shape((h,))))
+        width = h
+    return MLP(tuple(hidden), Dense(_Shape((width, out_width)), _Shape((out_width,))))
+
+
+def _pointnet_template(in_width, config, out_width):
+    widths, point, width = config.skr_point_widths, [], in_width
+    for w in widths:
+        point.append(Dense(_Shape((width, w)), _Shape((w,))))
+        width = w
+    return PointNetWeights(tuple(point),
+                           _mlp_template(widths[-1], config.skr_head_widths, out_width))
+
+
+def _gru_template(in_width, config):
+    h, layers = config.smrm_hidden, []
+    for i in range(config.smrm_layers):
+        layers.append(GRULayer(_Shape((in_width if i == 0 else h, 3 * h)), _Shape((h, 3 * h)),
+                               _Shape((3 * h,)), _Shape((3 * h,))))
+    return tuple(layers)
+
+
+def weight_template(config):
+    """The nested weight NamedTuples for ``config`` with shapes at the leaves."""
+    j, w0, h = config.num_joints, config.skr_point_widths[0], config.smrm_hidden
+    skr = SKRWeights(_pointnet_template(3, config, 9),
+                     _pointnet_template(w0, config, w0 * w0),
+                     _pointnet_template(3, config, j * 3))
+    smrm = SMRMWeights(_gru_template(j * 3 + 3, config), _gru_template(h + j * 3, config),
+                       Dense(_Shape((h, j * 4)), _Shape((j * 4,))),
+                       Dense(_Shape((h, 3)), _Shape((3,))))
+    skin = _mlp_template(j * 3, config.skin_widths, j)
+    return {"skr": skr, "smrm": smrm, "skin": skin}
+
+
+def _leaves(tree, prefix):
+    """Yield (dotted key, leaf) for every array leaf of nested NamedTuples and tuples."""
+    if isinstance(tree, (_Shape, np.ndarray)):
+        yield prefix, tree
+    else:
+        names = tree._fields if hasattr(tree, "_fields") else range(len(tree))
+        for name, child in zip(names, tree):
+            yield from _leaves(child, f"{prefix}.{name}")
+
+
+def _rebuild(tree, prefix, arrays):
+    """Replace every leaf of ``tree`` by ``arrays[its dotted key]``."""
+    if isinstance(tree, (_Shape, np.ndarray)):
+        return arrays[prefix]
+    if hasattr(tree, "_fields"):
+        return type(tree)(*(_rebuild(c, f"{prefix}.{n}", arrays)
+                            for n, c in zip(tree._fields, tree)))
+    return tuple(_rebuild(c, f"{prefix}.{i}", arrays) for i, c in enumerate(tree))
+
+
+def flatten_weights(weights):
+    """Weights -> {key: array} with the header keys, ready for ``np.savez``."""
+    arrays = {"format_version": np.array(FORMAT_VERSION),
+              "config": np.array(weights.config.to_json()),
+              "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
+    for stage in ("skr", "smrm", "skin"):
+        arrays.update(_leaves(getattr(weights, stage), stage))
+    return arrays
+
+
+def weights_from_arrays(arrays, source="weights"):
+    """Check a {key: array} mapping and build Weights; errors name ``source`` and the key."""
+    def header(key):
+        if key not in arrays:
+            raise ValueError(f"{source}: missing key '{key}'")
+        value = np.asarray(arrays[key])
+        if value.ndim != 0:
+            raise ValueError(f"{source}: key '{key}' must be a scalar, got shape {value.shape}")
+        return value[()]
+
+    version = header("format_version")
+    if not isinstance(version, (int, np.integer)) or int(version) != FORMAT_VERSION:
+        raise ValueError(f"{source}: format_version is {version!r}; this minretarget reads "
+                         f"version {FORMAT_VERSION}")
+    try:
+        config = ModelConfig.from_json(str(header("config")))
+        metadata = json.loads(str(header("metadata")))
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{source}: bad config or metadata: {error}") from None
+
+    template = weight_template(config)
+    expected = {key: shape for stage, tree in template.items() for key, shape in _leaves(tree, stage)}
+    missing = sorted(set(expected) - set(arrays))
+    extra = sorted(set(arrays) - set(expected) - set(_HEADER_KEYS))
+    if missing or extra:
+        raise ValueError(f"{source}: key set does not match the config; "
+                         f"missing {missing[:5]}{'...' if len(missing) > 5 else ''}, "
+                         f"unexpected {extra[:5]}{'...' if len(extra) > 5 else ''}")
+    loaded = {}
+    for key, shape in expected.items():
+        array = np.asarray(arrays[key])
+        if array.dtype not in (np.float32, np.float16):
+            raise ValueError(f"{source}: key '{key}' has dtype {array.dtype}; "
+                             "float32 or float16 expected")
+        if array.shape != tuple(shape):
+            raise ValueError(f"{source}: key '{key}' has shape {array.shape}; "
+                             f"expected {tuple(shape)}")
+        if not np.isfinite(array).all():
+            raise ValueError(f"{source}: key '{key}' holds NaN or inf")
+        loaded[key] = np.ascontiguousarray(array, dtype=np.float32)
+    stages = {stage: _rebuild(tree, stage, loaded) for stage, tree in template.items()}
+    return Weights(config=config, metadata=metadata, **stages)
+
+
+def load_weights(path=None):
+    """Load a weights file (``None``: the default weights shipped with minretarget).
+
+    Raises FileNotFoundError if the file is absent and ValueError naming the file and the key
+    if its content is not a valid weights file (pickled objects are refused, never loaded).
+    """
+    path = Path(DEFAULT_WEIGHTS if path is None else path)
+    if not path.is_file():
+        raise FileNotFoundError(f"weights file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {key: npz[key] for key in npz.files}
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as error:
+        raise ValueError(f"{path}: not a readable weights .npz ({error})") from None
+    return weights_from_arrays(arrays, source=str(path))
+
+
+def save_weights(path, weights, dtype=np.float32):
+    """Write Weights to ``path`` atomically (temporary file, then rename); arrays as ``dtype``."""
+    arrays = {key: (value.astype(dtype) if value.dtype.kind == "f" else value)
+              for key, value in flatten_weights(weights).items()}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as file:
+            np.savez(file, **arrays)
+        os.replace(temporary, path)
+    except BaseException:
+        os.unlink(temporary)
+        raise

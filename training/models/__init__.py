@@ -1,0 +1,7 @@
+"""The three networks of the torch reference, one module per pipeline stage."""
+from .skin import SkinningField
+from .skr import SkeletonRegressor
+from .smrm import MotionDiscriminator, MotionRetargeter, MotionState
+
+__all__ = ["SkeletonRegressor", "MotionRetargeter", "MotionDiscriminator", "MotionState",
+           "SkinningField"]

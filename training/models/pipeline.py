@@ -1,0 +1,44 @@
+"""The whole retargeting pipeline in torch: the reference the runtime's Retargeter must match.
+
+Mirrors minretarget.Retargeter step for step (inference only, eval mode, no gradients).
+"""
+import torch
+from torch import nn
+
+from minretarget.config import ModelConfig
+from training.kinematics import linear_blend_skinning, skinning_transforms, forward_kinematics
+from .skin import SkinningField
+from .skr import SkeletonRegressor
+from .smrm import MotionRetargeter
+
+
+class ReferenceRetargeter(nn.Module):
+    def __init__(self, config=ModelConfig()):
+        super().__init__()
+        self.config = config
+        self.skr = SkeletonRegressor(config)
+        self.smrm = MotionRetargeter(config)
+        self.skin = SkinningField(config)
+        self.target_points = self.tpose_joints = self.skin_weights = self.state = None
+
+    @torch.no_grad()
+    def set_target(self, points):
+        """points (V, 3) target in T-pose, metres: computes its skeleton and skinning weights."""
+        self.target_points = torch.as_tensor(points, dtype=torch.float32)
+        self.tpose_joints = self.skr(self.target_points[None])[0]             # (J, 3)
+        self.skin_weights = self.skin(self.target_points[None], self.tpose_joints[None])[0]
+        self.state = None
+
+    @torch.no_grad()
+    def step(self, points):
+        """points (P, 3) one source frame -> dict of vertices (V, 3), joints (J, 3),
+        rotations (J, 4), root (3,), source_joints (J, 3)."""
+        source_joints = self.skr(torch.as_tensor(points, dtype=torch.float32)[None])  # (1, J, 3)
+        rotations, root, joints, self.state = self.smrm(
+            source_joints[:, None], self.tpose_joints[None], self.state)
+        rotations, root, joints = rotations[0, 0], root[0, 0], joints[0, 0]
+        _, global_rotations = forward_kinematics(rotations, root, self.tpose_joints)
+        transforms = skinning_transforms(joints, global_rotations, self.tpose_joints)
+        vertices = linear_blend_skinning(self.target_points, self.skin_weights, transforms)
+        return dict(vertices=vertices, joints=joints, rotations=rotations, root=root,
+                    source_joints=source_joints[0])
