@@ -1,0 +1,373 @@
+"""Tests of minretarget.metrics: hand-computed cases, a slow twin of the alignment, properties."""
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from minretarget.metrics import (
+    METRIC_NAMES, acceleration_error, evaluate, knn_edges, mean_point_error, medl, mpjpe, mpvd,
+    pa_acceleration_error, pa_mpjpe, pa_mpvd, procrustes_align)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def rotation_from_quaternion(q):
+    """(4,) quaternion (w, x, y, z), any norm -> (3, 3) float64 rotation matrix."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def naive_procrustes_align(pred, gt):
+    """Slow twin of ``procrustes_align`` by another method: Horn's (1987) quaternion solution,
+    one (N, 3) set at a time. The best proper rotation is the top eigenvector of a symmetric
+    4x4 matrix, so reflections cannot occur by construction."""
+    pred = np.asarray(pred, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    out = np.empty_like(pred)
+    for index in np.ndindex(pred.shape[:-2]):
+        x = pred[index] - pred[index].mean(axis=0)
+        y = gt[index] - gt[index].mean(axis=0)
+        s = x.T @ y                                      # s[a, b] = sum_n x_a y_b
+        (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = s
+        horn = np.array([
+            [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+            [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+            [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+            [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+        ])
+        _, vectors = np.linalg.eigh(horn)
+        rotation = rotation_from_quaternion(vectors[:, -1])
+        rotated = x @ rotation.T
+        scale = np.sum(y * rotated) / np.sum(x * x)
+        out[index] = scale * rotated + gt[index].mean(axis=0)
+    return out
+
+
+def random_rotation(rng):
+    return rotation_from_quaternion(rng.normal(size=4))
+
+
+# Four points for hand computation, and a generic chiral cloud.
+CORNER = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+# 90 degrees about +Y: (x, y, z) -> (z, y, -x).
+ROT_Y_90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+CUBE = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+
+
+# ----------------------------------------------------------------------------- MPJPE / MPVD
+
+def test_constant_offset_of_3_4_0_cm_gives_5_cm():
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(7, 22, 3))
+    pred = gt + np.array([0.03, 0.04, 0.0])
+    assert mpjpe(pred, gt) == pytest.approx(0.05, abs=1e-15)
+    assert mpvd(pred, gt) == pytest.approx(0.05, abs=1e-15)
+    assert pa_mpjpe(pred, gt) == pytest.approx(0.0, abs=1e-12)
+    assert pa_mpvd(pred, gt) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_similarity_copy_by_hand():
+    # pred = 2 R gt + (0, 0, 1), R = 90 degrees about +Y. Per point, by hand:
+    # (1,0,0) -> (0,0,-1): sqrt(2); (0,1,0) -> (0,2,1): sqrt(2); (0,0,1) -> (2,0,1): 2;
+    # (0,0,0) -> (0,0,1): 1.
+    gt = CORNER[None]                                                # (1, 4, 3)
+    pred = 2.0 * gt @ ROT_Y_90.T + np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(pred[0], [[0, 0, -1], [0, 2, 1], [2, 0, 1], [0, 0, 1]])
+    assert mpjpe(pred, gt) == pytest.approx((2 * math.sqrt(2) + 3) / 4, abs=1e-15)
+    assert pa_mpjpe(pred, gt) == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(procrustes_align(pred, gt), gt, atol=1e-12)
+
+
+def test_mean_over_frames_and_points():
+    gt = np.zeros((2, 2, 3))
+    pred = np.array([[[1.0, 0, 0], [0, 2.0, 0]], [[0, 0, 3.0], [0, 0, 0]]])
+    assert mean_point_error(pred, gt) == pytest.approx((1 + 2 + 3 + 0) / 4)
+
+
+def test_float32_input_is_computed_in_float64():
+    rng = np.random.default_rng(1)
+    gt = rng.normal(size=(3, 22, 3)).astype(np.float32)
+    pred = (gt + rng.normal(scale=0.01, size=gt.shape)).astype(np.float32)
+    assert isinstance(pa_mpjpe(pred, gt), float)
+    assert pa_mpjpe(pred, gt) == pa_mpjpe(pred.astype(np.float64), gt.astype(np.float64))
+    assert procrustes_align(pred, gt).dtype == np.float64
+
+
+# ----------------------------------------------------------------------------- Procrustes
+
+def test_procrustes_matches_horn_twin_over_batch_dims():
+    rng = np.random.default_rng(2)
+    gt = rng.normal(size=(2, 5, 22, 3))
+    # Noisy similarity copies, half of them mirrored so that the det < 0 branch is taken.
+    pred = np.empty_like(gt)
+    for index in np.ndindex(2, 5):
+        mirror = np.diag([-1.0, 1.0, 1.0]) if index[1] % 2 else np.eye(3)
+        pred[index] = (rng.uniform(0.5, 2.0) * gt[index] @ (random_rotation(rng) @ mirror).T
+                       + rng.normal(size=3) + rng.normal(scale=0.1, size=(22, 3)))
+    np.testing.assert_allclose(procrustes_align(pred, gt), naive_procrustes_align(pred, gt),
+                               atol=1e-10)
+
+
+def test_reflected_copy_is_not_aligned_to_zero():
+    rng = np.random.default_rng(3)
+    gt = rng.normal(size=(4, 22, 3))                                 # generic, so chiral
+    pred = gt * np.array([-1.0, 1.0, 1.0])                           # mirror x
+    aligned = procrustes_align(pred, gt)
+    assert pa_mpjpe(pred, gt) > 0.1
+    np.testing.assert_allclose(aligned, naive_procrustes_align(pred, gt), atol=1e-10)
+    # The aligned set is a proper similarity image of pred: same handedness, so the signed
+    # volume of any 4 points keeps its sign (det > 0 times scale^3).
+    def volumes(points):                                             # (T, N, 3) -> (T,)
+        return np.linalg.det(points[:, 1:4] - points[:, :1])
+    assert np.all(np.sign(volumes(aligned)) == np.sign(volumes(pred)))
+    # While an alignment allowed to reflect would fit exactly: the minimum is really lost.
+    assert np.all(np.sign(volumes(pred)) != np.sign(volumes(gt)))
+
+
+def test_collapsed_prediction_lands_on_gt_centroid():
+    gt = CORNER[None]
+    pred = np.ones((1, 4, 3))
+    np.testing.assert_allclose(procrustes_align(pred, gt), np.broadcast_to(gt.mean(1), (1, 4, 3)))
+
+
+def test_procrustes_shape_errors():
+    with pytest.raises(ValueError,
+                       match=r"pred and gt must have the same shape.*\(4, 3\).*\(5, 3\)"):
+        procrustes_align(np.zeros((4, 3)), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match=r"pred must have shape \(\.\.\., N, 3\), got \(4, 2\)"):
+        procrustes_align(np.zeros((4, 2)), np.zeros((4, 2)))
+
+
+# ----------------------------------------------------------------------------- Acc / PA-Acc
+
+def test_constant_velocity_against_static_gt_has_zero_acceleration_error():
+    rng = np.random.default_rng(4)
+    start = rng.normal(size=(22, 3))
+    t = np.arange(10.0)[:, None, None]
+    pred = start + t * np.array([0.1, -0.2, 0.05])                   # (10, 22, 3)
+    gt = np.broadcast_to(start, pred.shape)
+    assert acceleration_error(pred, gt) == pytest.approx(0.0, abs=1e-14)
+    assert mpjpe(pred, gt) > 0
+
+
+def test_quadratic_trajectory_has_known_second_difference():
+    # x(t) = a + b t + c t^2 has second difference 2 c at every frame; |2 c| = 2 * 0.03.
+    c = np.array([0.01, 0.02, -0.02])
+    t = np.arange(6.0)[:, None, None]
+    pred = 0.5 + np.array([0.3, 0.0, -0.1]) * t + c * t ** 2       # (6, 1, 3)
+    gt = np.zeros_like(pred)
+    assert acceleration_error(pred, gt) == pytest.approx(0.06, abs=1e-13)
+    # Relative to a gt with the same acceleration, the error vanishes.
+    assert acceleration_error(pred, gt + c * t ** 2) == pytest.approx(0.0, abs=1e-13)
+
+
+def test_pa_acceleration_forgives_per_frame_similarity():
+    rng = np.random.default_rng(5)
+    gt = np.cumsum(rng.normal(scale=0.01, size=(8, 22, 3)), axis=0) + rng.normal(size=(22, 3))
+    pred = np.stack([rng.uniform(0.8, 1.2) * frame @ random_rotation(rng).T + rng.normal(size=3)
+                     for frame in gt])
+    assert acceleration_error(pred, gt) > 0.1
+    assert pa_acceleration_error(pred, gt) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_acceleration_needs_three_frames():
+    two = np.zeros((2, 22, 3))
+    for metric in (acceleration_error, pa_acceleration_error):
+        with pytest.raises(ValueError, match=r"pred and gt need at least 3 frame.*T = 2"):
+            metric(two, two)
+    assert acceleration_error(np.zeros((3, 22, 3)), np.zeros((3, 22, 3))) == 0.0
+
+
+# ----------------------------------------------------------------------------- MEDL
+
+def test_knn_edges_of_a_cube_are_its_12_edges():
+    edges = knn_edges(CUBE, k=3)
+    assert edges.shape == (12, 2)
+    assert np.all(edges[:, 0] < edges[:, 1])
+    np.testing.assert_allclose(np.linalg.norm(CUBE[edges[:, 0]] - CUBE[edges[:, 1]], axis=1), 1.0)
+
+
+def test_knn_edges_with_duplicate_points_have_no_self_loops():
+    points = np.concatenate([CUBE, CUBE[:2]])                        # two points twice
+    edges = knn_edges(points, k=3)
+    assert np.all(edges[:, 0] != edges[:, 1])
+    assert {(0, 8), (1, 9)} <= set(map(tuple, edges.tolist()))     # each duplicate is nearest
+
+
+def test_medl_of_scaled_cube_by_hand():
+    # Side 0.2 m, k = 3: the graph is the 12 cube edges, each stretched from 0.2 to 0.2 s.
+    gt = np.stack([0.2 * CUBE, 0.2 * CUBE + 1.0])                    # (2, 8, 3)
+    s = 1.5
+    pred = s * gt
+    assert medl(pred, gt, k=3) == pytest.approx((s - 1) * 0.2, abs=1e-15)
+
+
+def test_medl_of_scaled_cloud_is_scale_minus_one_times_mean_edge_length():
+    rng = np.random.default_rng(6)
+    gt = rng.normal(size=(3, 300, 3))
+    edges = knn_edges(gt[0], k=6)
+    lengths = np.linalg.norm(gt[:, edges[:, 0]] - gt[:, edges[:, 1]], axis=-1)  # (T, E)
+    assert medl(1.1 * gt, gt) == pytest.approx(0.1 * lengths.mean(), rel=1e-12)
+
+
+def test_medl_of_rigidly_moved_cloud_is_zero():
+    rng = np.random.default_rng(7)
+    gt = rng.normal(size=(4, 200, 3))
+    pred = np.stack([frame @ random_rotation(rng).T + rng.normal(size=3) for frame in gt])
+    assert mpvd(pred, gt) > 0.1
+    assert medl(pred, gt) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_medl_builds_its_graph_once_on_rest_or_first_frame():
+    rng = np.random.default_rng(8)
+    gt = rng.normal(size=(3, 50, 3))
+    pred = gt + rng.normal(scale=0.05, size=gt.shape)
+    rest = rng.normal(size=(50, 3))
+
+    def by_hand(graph_points):
+        i, j = knn_edges(graph_points, k=6).T
+        pred_length = np.linalg.norm(pred[:, i] - pred[:, j], axis=-1)
+        gt_length = np.linalg.norm(gt[:, i] - gt[:, j], axis=-1)
+        return np.abs(pred_length - gt_length).mean()
+
+    assert medl(pred, gt) == pytest.approx(by_hand(gt[0]), rel=1e-12)
+    assert medl(pred, gt, rest=rest) == pytest.approx(by_hand(rest), rel=1e-12)
+    assert medl(pred, gt, rest=rest) != pytest.approx(medl(pred, gt), rel=1e-6)
+
+
+def test_medl_in_blocks_of_frames_equals_one_block(monkeypatch):
+    import minretarget.metrics as metrics
+    rng = np.random.default_rng(11)
+    gt = rng.normal(size=(7, 40, 3))
+    pred = gt + rng.normal(scale=0.05, size=gt.shape)
+    whole = medl(pred, gt)
+    monkeypatch.setattr(metrics, "_BLOCK_VALUES", 1)                 # one frame per block
+    assert medl(pred, gt) == pytest.approx(whole, rel=1e-12)
+
+
+def test_medl_errors():
+    gt = np.zeros((2, 5, 3))
+    with pytest.raises(ValueError, match=r"k must satisfy 1 <= k < V, got k = 6 for 5 points"):
+        medl(gt, gt)
+    with pytest.raises(ValueError, match=r"rest must have shape \(V, 3\) with V = 5.*\(4, 3\)"):
+        medl(gt, gt, k=2, rest=np.zeros((4, 3)))
+
+
+# ----------------------------------------------------------------------------- shape errors
+
+@pytest.mark.parametrize("metric", [mpjpe, pa_mpjpe, mpvd, pa_mpvd, acceleration_error,
+                                    pa_acceleration_error, medl])
+def test_metrics_refuse_bad_shapes_and_values(metric):
+    good = np.zeros((4, 22, 3))
+    with pytest.raises(ValueError, match=r"pred and gt must have the same shape.*"
+                                         r"pred \(4, 22, 3\) and gt \(4, 21, 3\)"):
+        metric(good, np.zeros((4, 21, 3)))
+    with pytest.raises(ValueError, match=r"pred and gt must have the same shape.*\(5, 22, 3\)"):
+        metric(good, np.zeros((5, 22, 3)))
+    with pytest.raises(ValueError, match=r"pred must have shape \(T, N, 3\), got \(22, 3\)"):
+        metric(np.zeros((22, 3)), good)
+    with pytest.raises(ValueError, match=r"gt must have shape \(T, N, 3\), got \(4, 22, 4\)"):
+        metric(good, np.zeros((4, 22, 4)))
+    with pytest.raises(ValueError, match=r"must have shape \(T, N, 3\), got \(2, 4, 22, 3\)"):
+        metric(np.zeros((2, 4, 22, 3)), np.zeros((2, 4, 22, 3)))
+    bad = good.copy()
+    bad[1, 2, 0] = np.nan
+    with pytest.raises(ValueError, match=r"gt has a non-finite value nan at index \(1, 2, 0\)"):
+        metric(good, bad)
+
+
+# ----------------------------------------------------------------------------- evaluate
+
+def test_evaluate_returns_every_metric_as_the_single_functions_do():
+    rng = np.random.default_rng(9)
+    gt_joints = rng.normal(size=(6, 22, 3))
+    gt_points = rng.normal(size=(6, 100, 3))
+    pred_joints = gt_joints + rng.normal(scale=0.05, size=gt_joints.shape)
+    pred_points = 1.05 * gt_points + rng.normal(scale=0.02, size=gt_points.shape)
+    result = evaluate(pred_joints, gt_joints, pred_points, gt_points)
+    assert tuple(result) == METRIC_NAMES
+    assert set(result) == {"MPJPE", "PA-MPJPE", "Acc", "PA-Acc", "MPVD", "PA-MPVD", "MEDL"}
+    assert all(type(value) is float for value in result.values())
+    expected = {
+        "MPJPE": mpjpe(pred_joints, gt_joints),
+        "PA-MPJPE": pa_mpjpe(pred_joints, gt_joints),
+        "Acc": acceleration_error(pred_joints, gt_joints),
+        "PA-Acc": pa_acceleration_error(pred_joints, gt_joints),
+        "MPVD": mpvd(pred_points, gt_points),
+        "PA-MPVD": pa_mpvd(pred_points, gt_points),
+        "MEDL": medl(pred_points, gt_points),
+    }
+    assert result == pytest.approx(expected, rel=1e-12)
+
+
+def test_evaluate_names_the_bad_argument():
+    joints = np.zeros((5, 22, 3))
+    points = np.zeros((5, 30, 3))
+    with pytest.raises(ValueError, match=r"pred_points and gt_points must have the same shape"):
+        evaluate(joints, joints, points, np.zeros((5, 31, 3)))
+    with pytest.raises(ValueError, match=r"pred_joints and gt_joints need at least 3 frame"):
+        evaluate(joints[:2], joints[:2], points[:2], points[:2])
+    with pytest.raises(ValueError, match=r"same number of frames T.*\(5, 22, 3\).*\(4, 30, 3\)"):
+        evaluate(joints, joints, points[:4], points[:4])
+
+
+# ----------------------------------------------------------------------------- properties
+
+coordinates = st.floats(-1.0, 1.0, allow_nan=False, allow_subnormal=False)
+
+
+similarity = dict(quaternion=arrays(np.float64, (4,), elements=coordinates),
+                  scale=st.floats(0.01, 100.0),
+                  translation=arrays(np.float64, (3,), elements=st.floats(-10.0, 10.0)))
+point_sets = arrays(np.float64, st.tuples(st.integers(1, 3), st.integers(3, 30), st.just(3)),
+                    elements=coordinates)
+
+
+@settings(max_examples=200, deadline=None)
+@given(points=point_sets, **similarity)
+def test_pa_mpjpe_of_a_similarity_copy_is_zero(points, quaternion, scale, translation):
+    assume(np.linalg.norm(quaternion) > 0.1)
+    pred = scale * points @ rotation_from_quaternion(quaternion).T + translation
+    assert pa_mpjpe(pred, points) <= 1e-9 * (1.0 + np.abs(points).max())
+
+
+@settings(max_examples=200, deadline=None)
+@given(points=point_sets, **similarity)
+def test_pa_mpjpe_ignores_a_similarity_of_pred(points, quaternion, scale, translation):
+    assume(np.linalg.norm(quaternion) > 0.1)
+    # Sets that (nearly) collapse to one point are left out: there, rounding in the transform
+    # decides whether pred still spans a direction to fit, or aligns onto the gt centroid.
+    assume(np.all(np.ptp(points, axis=1).max(axis=-1) > 1e-3))
+    pred = scale * points @ rotation_from_quaternion(quaternion).T + translation
+    gt = points + np.linspace(-0.1, 0.1, points.size).reshape(points.shape)
+    assert pa_mpjpe(pred, gt) == pytest.approx(pa_mpjpe(points, gt), abs=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(pred=arrays(np.float64, (2, 12, 3), elements=coordinates),
+       gt=arrays(np.float64, (2, 12, 3), elements=coordinates))
+def test_procrustes_never_increases_the_squared_error(pred, gt):
+    # What the alignment minimises is the sum of squared distances; the identity is one of the
+    # candidates, so per frame the aligned squared error is at most the raw one.
+    aligned = procrustes_align(pred, gt)
+    aligned_sq = np.sum((aligned - gt) ** 2, axis=(1, 2))
+    raw_sq = np.sum((pred - gt) ** 2, axis=(1, 2))
+    assert np.all(aligned_sq <= raw_sq + 1e-9)
+
+
+def test_pa_mpjpe_can_exceed_mpjpe():
+    # Not a bug: PA minimises squared distances, MPJPE averages distances. One outlier joint
+    # 1 m off gives MPJPE 1/22 m; the least-squares fit spreads it over every joint.
+    rng = np.random.default_rng(10)
+    gt = rng.normal(size=(1, 22, 3))
+    pred = gt.copy()
+    pred[0, 0] += np.array([1.0, 0.0, 0.0])
+    assert mpjpe(pred, gt) == pytest.approx(1 / 22)
+    assert pa_mpjpe(pred, gt) > mpjpe(pred, gt)
