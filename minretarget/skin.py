@@ -73,12 +73,12 @@ def linear_blend_skinning(points, skin_weights, transforms):
 @parallel_kernel
 def _linear_blend_skinning_kernel(points, skin_weights, transforms, out):
     for i in prange(points.shape[0]):
-        blend = np.zeros((3, 4), dtype=np.float32)   # the weighted mean of the joint maps
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        out_x = out_y = out_z = np.float32(0.0)
         for k in range(transforms.shape[0]):
             w = skin_weights[i, k]
-            for a in range(3):
-                for b in range(4):
-                    blend[a, b] += w * transforms[k, a, b]
-        for a in range(3):
-            out[i, a] = (blend[a, 0] * points[i, 0] + blend[a, 1] * points[i, 1]
-                         + blend[a, 2] * points[i, 2] + blend[a, 3])
+            m = transforms[k]
+            out_x += w * (m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3])
+            out_y += w * (m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3])
+            out_z += w * (m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3])
+        out[i, 0], out[i, 1], out[i, 2] = out_x, out_y, out_z

@@ -9,14 +9,13 @@ stored (in, out), the layout the kernels multiply with. Besides the arrays:
 Arrays may be stored as float16 or float32; they are always float32 in memory.
 """
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from .atomic import atomic_write
 from .config import ModelConfig
 from .nn import MLP, Dense
 from .skr import PointNetWeights, SKRWeights
@@ -118,7 +117,8 @@ def weights_from_arrays(arrays, source="weights"):
         return value[()]
 
     version = header("format_version")
-    if not isinstance(version, (int, np.integer)) or int(version) != FORMAT_VERSION:
+    version = int(version) if isinstance(version, (int, np.integer)) else version
+    if version != FORMAT_VERSION:
         raise ValueError(f"{source}: format_version is {version!r}; this minretarget reads "
                          f"version {FORMAT_VERSION}")
     try:
@@ -169,16 +169,8 @@ def load_weights(path=None):
 
 
 def save_weights(path, weights, dtype=np.float32):
-    """Write Weights to ``path`` atomically (temporary file, then rename); arrays as ``dtype``."""
+    """Write Weights to ``path`` atomically; floating-point arrays stored as ``dtype``."""
     arrays = {key: (value.astype(dtype) if value.dtype.kind == "f" else value)
               for key, value in flatten_weights(weights).items()}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as file:
-            np.savez(file, **arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        os.unlink(temporary)
-        raise
+    with atomic_write(path) as file:
+        np.savez(file, **arrays)

@@ -1,0 +1,22 @@
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+setup(
+    name="minretarget",
+    version="0.1.0",
+    description="Correspondence-free online dense human motion retargeting on the CPU",
+    long_description=Path(__file__).with_name("README.md").read_text(encoding="utf-8"),
+    long_description_content_type="text/markdown",
+    license="MIT",
+    python_requires=">=3.10",
+    packages=find_packages(include=["minretarget", "minretarget.*", "training", "training.*"]),
+    package_data={"minretarget": ["data/*.npz", "data/*.json"]},
+    install_requires=["numpy>=1.24", "numba>=0.59", "scipy>=1.10"],
+    extras_require={
+        # torch is pinned: 2.13.0's CPU wheel is on the project's machines, and an unpinned
+        # torch pulls a multi-GB CUDA build.
+        "train": ["torch==2.13.0", "anny==0.6.2", "trimesh>=4.0", "tqdm>=4.60"],
+        "test": ["pytest>=7", "hypothesis>=6"],
+    },
+)

@@ -1,0 +1,152 @@
+"""Each numba kernel against its plain NumPy twin (tests/twins.py), and stage properties."""
+import numpy as np
+import pytest
+
+import twins
+from minretarget.conventions import NUM_JOINTS
+from minretarget.kinematics import forward_kinematics, skinning_transforms
+from minretarget.nn import dense, mlp
+from minretarget.skin import linear_blend_skinning, skinning_weights
+from minretarget.skr import regress_joints
+from minretarget.smrm import gru_layer_step, initial_state, retarget_step
+
+
+def test_dense_and_mlp_match_twins(tiny_weights):
+    rng = np.random.default_rng(0)
+    net = tiny_weights.skin
+    x = rng.normal(size=(50, net.hidden[0].weight.shape[0])).astype(np.float32)
+    for relu in (True, False):
+        np.testing.assert_allclose(dense(x, net.hidden[0], relu),
+                                   twins.dense(x, net.hidden[0], relu), atol=1e-5)
+    np.testing.assert_allclose(mlp(x, net), twins.mlp(x, net), atol=1e-5)
+
+
+def test_skr_matches_twin_for_any_point_count(tiny_weights):
+    rng = np.random.default_rng(1)
+    for count in (64, 100, 1000):
+        points = rng.normal(size=(count, 3)).astype(np.float32)
+        joints = regress_joints(points, tiny_weights.skr)
+        assert joints.shape == (NUM_JOINTS, 3) and joints.dtype == np.float32
+        np.testing.assert_allclose(joints, twins.pointnet(points, tiny_weights.skr), atol=1e-5)
+
+
+def test_skr_is_translation_equivariant_and_order_invariant(tiny_weights):
+    rng = np.random.default_rng(2)
+    points = rng.normal(size=(300, 3)).astype(np.float32)
+    joints = regress_joints(points, tiny_weights.skr)
+    shift = np.float32([5.0, -2.0, 3.0])
+    np.testing.assert_allclose(regress_joints(points + shift, tiny_weights.skr), joints + shift,
+                               atol=1e-4)
+    np.testing.assert_allclose(regress_joints(rng.permutation(points), tiny_weights.skr),
+                               joints, atol=1e-5)
+
+
+def test_skr_batch_equals_per_item_calls(tiny_weights):
+    batch = np.random.default_rng(3).normal(size=(4, 128, 3)).astype(np.float32)
+    joints = regress_joints(batch, tiny_weights.skr)
+    for b in range(4):
+        np.testing.assert_array_equal(joints[b], regress_joints(batch[b], tiny_weights.skr))
+
+
+def test_gru_layer_step_matches_twin(tiny_weights):
+    rng = np.random.default_rng(4)
+    layer = tiny_weights.smrm.encoder[0]
+    x = rng.normal(size=(1, layer.input_weight.shape[0])).astype(np.float32)
+    h = rng.normal(size=(1, layer.hidden_weight.shape[0])).astype(np.float32)
+    np.testing.assert_allclose(gru_layer_step(x, h, layer), twins.gru_layer_step(x, h, layer),
+                               atol=1e-6)
+
+
+def test_retarget_step_matches_twin_and_streams(tiny_weights):
+    """Three frames through the kernel against the twin GRU stack and heads."""
+    rng = np.random.default_rng(5)
+    smrm = tiny_weights.smrm
+    tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+    frames = rng.normal(size=(3, NUM_JOINTS, 3)).astype(np.float32)
+    state = None
+    hidden = np.zeros((2, len(smrm.encoder), 1, smrm.encoder[0].hidden_weight.shape[0]))
+    previous_root, leg_sum = frames[0, 0], 0.0
+    for t, joints in enumerate(frames):
+        rotations, root, state = retarget_step(smrm, state, joints, tpose)
+        x = np.concatenate([(joints - joints[0]).ravel(), joints[0] - previous_root])[None]
+        for i, layer in enumerate(smrm.encoder):
+            x = hidden[0, i] = twins.gru_layer_step(x, hidden[0, i], layer)
+        x = np.concatenate([x, (tpose - tpose[0]).ravel()[None]], axis=1)
+        for i, layer in enumerate(smrm.decoder):
+            x = hidden[1, i] = twins.gru_layer_step(x, hidden[1, i], layer)
+        q = twins.dense(x, smrm.rotation_head, False).reshape(-1, 4)
+        np.testing.assert_allclose(rotations, q / np.linalg.norm(q, axis=1, keepdims=True),
+                                   atol=1e-5)
+        leg_sum += twins_leg_length(joints)
+        scale = twins_leg_length(tpose) / (leg_sum / (t + 1))
+        np.testing.assert_allclose(root, scale * joints[0]
+                                   + twins.dense(x, smrm.root_head, False)[0], atol=1e-5)
+        previous_root = joints[0]
+    assert state.frames_seen == 3
+
+
+def twins_leg_length(joints):
+    return sum(np.linalg.norm(joints[a] - joints[b]) for a, b in
+               ((4, 1), (7, 4), (5, 2), (8, 5))) / 2
+
+
+def test_initial_state_is_zero_with_the_first_root(tiny_weights):
+    joints = np.random.default_rng(6).normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+    state = initial_state(tiny_weights.smrm, joints)
+    assert not state.encoder_hidden.any() and not state.decoder_hidden.any()
+    np.testing.assert_array_equal(state.previous_root, joints[0])
+
+
+def test_skinning_weights_match_twin_and_are_a_partition_of_unity(tiny_weights):
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(5000, 3)).astype(np.float32)   # more than one chunk
+    tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+    weights = skinning_weights(points, tpose, tiny_weights.skin, chunk=2048)
+    np.testing.assert_allclose(weights, twins.skinning_weights(points, tpose, tiny_weights.skin),
+                               atol=1e-6)
+    assert (weights >= 0).all()
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=1e-5)
+
+
+def test_lbs_matches_twin():
+    rng = np.random.default_rng(8)
+    points = rng.normal(size=(400, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(NUM_JOINTS), size=400).astype(np.float32)
+    tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+    joints, rotations = forward_kinematics(rng.normal(size=(NUM_JOINTS, 4)), rng.normal(size=3),
+                                           tpose)
+    transforms = skinning_transforms(joints, rotations, tpose)
+    np.testing.assert_allclose(linear_blend_skinning(points, weights, transforms),
+                               twins.linear_blend_skinning(points, weights, transforms), atol=1e-5)
+
+
+def test_lbs_with_identity_transforms_returns_its_input():
+    rng = np.random.default_rng(9)
+    points = rng.normal(size=(100, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(NUM_JOINTS), size=100).astype(np.float32)
+    identity = np.tile(np.eye(3, 4, dtype=np.float32), (NUM_JOINTS, 1, 1))
+    np.testing.assert_allclose(linear_blend_skinning(points, weights, identity), points,
+                               atol=1e-6)
+
+
+def test_lbs_with_a_rigid_motion_moves_points_rigidly():
+    """Weights summing to one blend identical maps into that map."""
+    rng = np.random.default_rng(10)
+    points = rng.normal(size=(100, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(NUM_JOINTS), size=100).astype(np.float32)
+    rotation = twins.quaternion_to_matrix(rng.normal(size=4))
+    shift = rng.normal(size=3)
+    transforms = np.tile(np.concatenate([rotation, shift[:, None]], 1), (NUM_JOINTS, 1, 1))
+    np.testing.assert_allclose(linear_blend_skinning(points, weights, transforms),
+                               points @ rotation.T + shift, atol=1e-5)
+
+
+def test_stage_inputs_are_validated(tiny_weights):
+    with pytest.raises(ValueError, match="at least 64"):
+        regress_joints(np.zeros((10, 3)), tiny_weights.skr)
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., any, 3\)"):
+        regress_joints(np.zeros((100, 2)), tiny_weights.skr)
+    with pytest.raises(ValueError, match="skin_weights must have shape"):
+        linear_blend_skinning(np.zeros((5, 3)), np.zeros((4, 22)), np.zeros((22, 3, 4)))
+    with pytest.raises(ValueError, match="source_joints"):
+        retarget_step(tiny_weights.smrm, None, np.zeros((21, 3)), np.zeros((22, 3)))

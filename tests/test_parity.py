@@ -1,0 +1,137 @@
+"""The runtime against the torch reference: per stage and end to end, tiny and paper sizes."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")  # the runtime-only suite (test_golden.py) runs without it
+
+from make_golden import reference_outputs  # noqa: E402
+from reference_models import random_reference, random_stream  # noqa: E402
+
+from minretarget.config import ModelConfig  # noqa: E402
+from minretarget.retargeter import Retargeter  # noqa: E402
+from minretarget.skin import linear_blend_skinning, skinning_weights  # noqa: E402
+from minretarget.skr import regress_joints  # noqa: E402
+from minretarget.weights import load_weights  # noqa: E402
+from training import kinematics as torch_kinematics  # noqa: E402
+from training.export import export_weights, runtime_weights  # noqa: E402
+
+TOLERANCE = 1e-4   # metres, on joints and vertices
+
+
+@pytest.fixture(scope="module")
+def tiny_model():
+    return random_reference(seed=0)
+
+
+def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp_path):
+    export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin)
+    retargeter = Retargeter.from_weights(tmp_path / "w.npz")
+    target, sources = random_stream(seed=1, frames=60)
+    want = reference_outputs(tiny_model, target, sources)
+    retargeter.set_target(target)
+    np.testing.assert_allclose(retargeter.target.tpose_joints, want["tpose_joints"],
+                               atol=TOLERANCE)
+    np.testing.assert_allclose(retargeter.target.skin_weights, want["skin_weights"], atol=1e-5)
+    frames = list(retargeter.run(sources))
+    for key in ("vertices", "joints", "root", "source_joints"):
+        got = np.stack([getattr(frame, key) for frame in frames])
+        np.testing.assert_allclose(got, want[key], atol=TOLERANCE, err_msg=key)
+    rotations = np.stack([frame.rotations for frame in frames])
+    np.testing.assert_allclose(rotations, want["rotations"], atol=1e-5)
+
+
+def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights, tiny_stream):
+    """tests/golden was made from this reference; regenerate it (make_golden.py) if this fails."""
+    target, sources, golden = tiny_stream
+    want = reference_outputs(tiny_model, target, sources)
+    for key, value in want.items():
+        np.testing.assert_allclose(golden[f"torch_{key}"], value, atol=1e-6, err_msg=key)
+    exported = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin)
+    flat = lambda weights: np.concatenate([np.ravel(a) for a in leaves(weights)])  # noqa: E731
+    np.testing.assert_array_equal(flat(exported), flat(tiny_weights))
+
+def leaves(weights):
+    def walk(tree):
+        if isinstance(tree, np.ndarray):
+            yield tree
+        else:
+            for child in tree:
+                yield from walk(child)
+    return [a for stage in (weights.skr, weights.smrm, weights.skin) for a in walk(stage)]
+
+
+def test_torch_step_by_step_equals_whole_sequence(tiny_model):
+    rng = np.random.default_rng(2)
+    joints = torch.from_numpy(rng.normal(size=(3, 40, 22, 3)).astype(np.float32))
+    tpose = torch.from_numpy(rng.normal(size=(3, 22, 3)).astype(np.float32))
+    with torch.no_grad():
+        whole = tiny_model.smrm(joints, tpose)
+        state, steps = None, []
+        for t in range(40):
+            *outputs, state = tiny_model.smrm(joints[:, t:t + 1], tpose, state)
+            steps.append(outputs)
+    for index, atol in ((0, 1e-5), (1, TOLERANCE), (2, TOLERANCE)):   # rotations, root, joints
+        stepped = torch.cat([s[index] for s in steps], dim=1)
+        torch.testing.assert_close(stepped, whole[index], atol=atol, rtol=0)
+
+
+def test_torch_fk_and_lbs_match_the_runtime():
+    from minretarget.kinematics import forward_kinematics, skinning_transforms
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(5, 22, 4)).astype(np.float32)
+    root = rng.normal(size=(5, 3)).astype(np.float32)
+    tpose = rng.normal(size=(22, 3)).astype(np.float32)
+    joints, rotations = forward_kinematics(q, root, tpose)
+    torch_joints, torch_rotations = torch_kinematics.forward_kinematics(
+        torch.from_numpy(q), torch.from_numpy(root), torch.from_numpy(tpose))
+    np.testing.assert_allclose(joints, torch_joints.numpy(), atol=1e-5)
+    np.testing.assert_allclose(rotations, torch_rotations.numpy(), atol=1e-5)
+    points = rng.normal(size=(300, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(22), size=300).astype(np.float32)
+    transforms = skinning_transforms(joints[0], rotations[0], tpose)
+    torch_points = torch_kinematics.linear_blend_skinning(
+        torch.from_numpy(points), torch.from_numpy(weights),
+        torch_kinematics.skinning_transforms(torch_joints[0], torch_rotations[0],
+                                             torch.from_numpy(tpose)))
+    np.testing.assert_allclose(linear_blend_skinning(points, weights, transforms),
+                               torch_points.numpy(), atol=1e-5)
+
+
+def test_paper_size_stages_match_torch(tmp_path):
+    """The paper's widths (1024-wide max-pool, 512-wide GRUs) at P = 2048 points."""
+    model = random_reference(ModelConfig(), seed=4)
+    export_weights(tmp_path / "paper.npz", model.skr, model.smrm, model.skin)
+    weights = load_weights(tmp_path / "paper.npz")
+    rng = np.random.default_rng(4)
+    points = (rng.normal(size=(2048, 3)) * [0.3, 0.8, 0.15]).astype(np.float32)
+    with torch.no_grad():
+        want_joints = model.skr(torch.from_numpy(points)[None])[0].numpy()
+        want_weights = model.skin(torch.from_numpy(points)[None],
+                                  torch.from_numpy(want_joints)[None])[0].numpy()
+        source = torch.from_numpy(rng.normal(size=(1, 10, 22, 3)).astype(np.float32))
+        want_rotations, want_root, want_fk, _ = model.smrm(source, torch.from_numpy(want_joints)[None])
+    joints = regress_joints(points, weights.skr)
+    np.testing.assert_allclose(joints, want_joints, atol=TOLERANCE)
+    np.testing.assert_allclose(skinning_weights(points, joints, weights.skin), want_weights,
+                               atol=1e-5)
+    retargeter = Retargeter(weights)
+    retargeter.set_target(points)
+    for t in range(10):
+        frame = retargeter.step_skeleton(source[0, t].numpy())
+        np.testing.assert_allclose(frame.rotations, want_rotations[0, t].numpy(), atol=1e-5)
+        np.testing.assert_allclose(frame.root, want_root[0, t].numpy(), atol=TOLERANCE)
+        np.testing.assert_allclose(frame.joints, want_fk[0, t].numpy(), atol=TOLERANCE)
+
+
+def test_batch_norm_is_folded_with_running_statistics(tiny_model):
+    """Export folds eval-mode batch norm: the exported SKR equals torch in eval mode only."""
+    weights = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin)
+    points = np.random.default_rng(5).normal(size=(4, 200, 3)).astype(np.float32)
+    with torch.no_grad():
+        want = tiny_model.skr(torch.from_numpy(points)).numpy()
+        tiny_model.skr.train()
+        batch_stats = tiny_model.skr(torch.from_numpy(points)).numpy()
+        tiny_model.skr.eval()
+    got = regress_joints(points, weights.skr)
+    np.testing.assert_allclose(got, want, atol=TOLERANCE)
+    assert np.abs(got - batch_stats).max() > 10 * TOLERANCE

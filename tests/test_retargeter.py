@@ -1,0 +1,87 @@
+"""The Retargeter's public behaviour: streaming, state, and input errors."""
+import itertools
+
+import numpy as np
+import pytest
+
+from minretarget import Retargeter
+
+
+@pytest.fixture()
+def retargeter(tiny_weights, tiny_stream):
+    retargeter = Retargeter(tiny_weights)
+    retargeter.set_target(tiny_stream[0])
+    return retargeter
+
+
+def test_frame_shapes_and_dtypes(retargeter, tiny_stream):
+    frame = retargeter.step(tiny_stream[1][0])
+    assert frame.vertices.shape == (256, 3) and frame.joints.shape == (22, 3)
+    assert frame.rotations.shape == (22, 4) and frame.root.shape == (3,)
+    assert all(a.dtype == np.float32 for a in frame)
+    np.testing.assert_allclose(np.linalg.norm(frame.rotations, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(frame.joints[0], frame.root)
+
+
+def test_run_equals_step_by_step_and_restarts_the_stream(retargeter, tiny_stream):
+    sources = tiny_stream[1][:10]
+    first = [f.vertices for f in retargeter.run(sources)]
+    retargeter.reset()
+    stepped = [retargeter.step(points).vertices for points in sources]
+    again = [f.vertices for f in retargeter.run(sources)]   # run() resets by itself
+    np.testing.assert_array_equal(np.stack(first), np.stack(stepped))
+    np.testing.assert_array_equal(np.stack(first), np.stack(again))
+
+
+def test_state_carries_across_frames(retargeter, tiny_stream):
+    """The same frame gives a different result after other frames than at a stream's start."""
+    sources = tiny_stream[1]
+    fresh = retargeter.step(sources[5]).rotations
+    retargeter.reset()
+    for points in sources[:5]:
+        retargeter.step(points)
+    assert np.abs(retargeter.step(sources[5]).rotations - fresh).max() > 1e-4
+
+
+def test_run_is_lazy_over_endless_streams(retargeter, tiny_stream):
+    endless = itertools.cycle(tiny_stream[1][:3])
+    frames = list(itertools.islice(retargeter.run(endless), 5))
+    assert len(frames) == 5
+
+
+def test_order_of_target_points_is_kept(tiny_weights, tiny_stream):
+    target, sources, _ = tiny_stream
+    order = np.random.default_rng(0).permutation(len(target))
+    a, b = Retargeter(tiny_weights), Retargeter(tiny_weights)
+    a.set_target(target)
+    b.set_target(target[order])
+    np.testing.assert_allclose(b.step(sources[0]).vertices, a.step(sources[0]).vertices[order],
+                               atol=1e-5)
+
+
+def test_faces_are_checked_and_kept(tiny_weights, tiny_stream):
+    retargeter = Retargeter(tiny_weights)
+    faces = np.array([[0, 1, 2], [2, 3, 4]])
+    retargeter.set_target(tiny_stream[0], faces)
+    np.testing.assert_array_equal(retargeter.target.faces, faces)
+    with pytest.raises(ValueError, match="outside"):
+        retargeter.set_target(tiny_stream[0], np.array([[0, 1, 256]]))
+    with pytest.raises(ValueError, match="faces must be"):
+        retargeter.set_target(tiny_stream[0], np.array([[0.5, 1, 2]]))
+
+
+def test_bad_input_names_the_problem(tiny_weights, retargeter, tiny_stream):
+    with pytest.raises(RuntimeError, match="set_target"):
+        Retargeter(tiny_weights).step(tiny_stream[1][0])
+    with pytest.raises(ValueError, match="target points has 10 points"):
+        Retargeter(tiny_weights).set_target(np.zeros((10, 3)))
+    with pytest.raises(ValueError, match=r"source points must have shape \(any, 3\), got \(100, 4\)"):
+        retargeter.step(np.zeros((100, 4)))
+    bad = tiny_stream[1][0].copy()
+    bad[7, 1] = np.inf
+    with pytest.raises(ValueError, match=r"non-finite value inf at index \(7, 1\)"):
+        retargeter.step(bad)
+    with pytest.raises(ValueError, match="frame 2: source points"):
+        list(retargeter.run([tiny_stream[1][0], tiny_stream[1][1], np.zeros((3, 3))]))
+    with pytest.raises(ValueError, match="dtype"):
+        retargeter.step(np.array([["a", "b", "c"]] * 100))

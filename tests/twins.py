@@ -1,0 +1,85 @@
+"""Plain NumPy twins of the runtime's numba kernels: slow, obvious, float64.
+
+Each twin restates the maths from its docstring in the most direct NumPy form, so a kernel
+and its twin can only agree if both implement the same equations.
+"""
+import numpy as np
+
+from minretarget.conventions import PARENTS
+
+
+def quaternion_to_matrix(q):
+    """(..., 4) (w, x, y, z) -> (..., 3, 3), via the unit quaternion."""
+    q = np.asarray(q, np.float64)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    return np.stack([
+        np.stack([w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z], -1),
+    ], -2)
+
+
+def forward_kinematics(rotations, root, tpose):
+    """(J, 4), (3,), (J, 3) -> joints (J, 3), global rotations (J, 3, 3)."""
+    local = quaternion_to_matrix(rotations)
+    joints, globals_ = [np.asarray(root, np.float64)], [local[0]]
+    for j in range(1, len(PARENTS)):
+        p = PARENTS[j]
+        globals_.append(globals_[p] @ local[j])
+        joints.append(joints[p] + globals_[p] @ (tpose[j] - tpose[p]))
+    return np.stack(joints), np.stack(globals_)
+
+
+def dense(x, layer, relu):
+    y = np.asarray(x, np.float64) @ layer.weight + layer.bias
+    return np.maximum(y, 0) if relu else y
+
+
+def mlp(x, weights):
+    for layer in weights.hidden:
+        x = dense(x, layer, True)
+    return dense(x, weights.output, False)
+
+
+def pointnet(points, weights):
+    """(P, 3) -> (J, 3): SKR as described in minretarget.skr."""
+    def features(x, net, first):
+        for layer in net.point[first:]:
+            x = dense(x, layer, True)
+        return x.max(axis=0, keepdims=True)
+
+    def transform(x, net):
+        k = x.shape[1]
+        return mlp(features(x, net, 0), net.head).reshape(k, k) + np.eye(k)
+
+    centroid = points.mean(axis=0, dtype=np.float64)
+    x = points - centroid
+    x = x @ transform(x, weights.input_transform)
+    x = dense(x, weights.regressor.point[0], True)
+    x = x @ transform(x, weights.feature_transform)
+    return mlp(features(x, weights.regressor, 1), weights.regressor.head).reshape(-1, 3) + centroid
+
+
+def gru_layer_step(x, h, layer):
+    """torch.nn.GRU's cell: gates ordered reset, update, new."""
+    sigmoid = lambda v: 1 / (1 + np.exp(-v))  # noqa: E731
+    x_reset, x_update, x_new = np.split(x @ layer.input_weight + layer.input_bias, 3, axis=-1)
+    h_reset, h_update, h_new = np.split(h @ layer.hidden_weight + layer.hidden_bias, 3, axis=-1)
+    reset, update = sigmoid(x_reset + h_reset), sigmoid(x_update + h_update)
+    n = np.tanh(x_new + reset * h_new)
+    return (1 - update) * n + update * h
+
+
+def skinning_weights(points, tpose_joints, weights):
+    """(V, 3), (J, 3) -> (V, J) softmax of the MLP of the offsets."""
+    offsets = (points[:, None, :] - tpose_joints[None, :, :]).reshape(len(points), -1)
+    logits = mlp(offsets, weights)
+    e = np.exp(logits - logits.max(axis=1, keepdims=True))
+    return e / e.sum(axis=1, keepdims=True)
+
+
+def linear_blend_skinning(points, skin_weights, transforms):
+    """(V, 3), (V, J), (J, 3, 4) -> (V, 3): sum_j w_vj (A_j [x; 1])."""
+    homogeneous = np.concatenate([points, np.ones((len(points), 1))], axis=1)     # (V, 4)
+    per_joint = np.einsum("jab,vb->vja", transforms.astype(np.float64), homogeneous)
+    return np.einsum("vj,vja->va", skin_weights, per_joint)
