@@ -16,7 +16,7 @@ setup(
     extras_require={
         # torch is pinned: 2.13.0's CPU wheel is on the project's machines, and an unpinned
         # torch pulls a multi-GB CUDA build.
-        "train": ["torch==2.13.0", "anny==0.6.2", "trimesh>=4.0", "tqdm>=4.60"],
+        "train": ["torch==2.13.0", "anny==0.6.2", "trimesh>=4.0", "tqdm>=4.60", "matplotlib>=3.6"],
         "test": ["pytest>=7", "hypothesis>=6"],
     },
 )

@@ -1,0 +1,147 @@
+"""The training loop end to end on tiny synthetic datasets: every stage, export, resume."""
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from minretarget import Retargeter  # noqa: E402
+from minretarget.conventions import NUM_JOINTS, PARENTS  # noqa: E402
+from training import kinematics  # noqa: E402
+from training.losses import rotation_distance, skin_loss  # noqa: E402
+from training.recipe import load_recipe  # noqa: E402
+from training.train import main, retarget_ground_truth  # noqa: E402
+
+TINY_RECIPE = {
+    "name": "tiny", "seed": 0,
+    "model": {"skr_point_widths": [8, 16, 32], "skr_head_widths": [16, 16], "smrm_hidden": 16,
+              "smrm_layers": 1, "skin_widths": [16]},
+    "skr": {"steps": 6, "batch_size": 4, "points": 80, "eval_every": 3},
+    "skin": {"steps": 4, "batch_size": 2, "points": 50, "eval_every": 2},
+    "smrm": {"steps": 4, "batch_size": 3, "eval_every": 2, "discriminator_width": 8},
+}
+
+
+def skeleton(rng, height):
+    """A random tree of bones below/above a pelvis at ``height``, feet near y = 0."""
+    joints = np.zeros((NUM_JOINTS, 3), np.float32)
+    joints[0] = [0, height, 0]
+    for j in range(1, NUM_JOINTS):
+        joints[j] = joints[PARENTS[j]] + rng.normal(0, 0.1, 3)
+    return joints
+
+
+def random_quaternions(rng, shape):
+    q = rng.normal(size=shape + (4,)) * [1, 0.2, 0.2, 0.2] + [3, 0, 0, 0]
+    return (q / np.linalg.norm(q, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def write_datasets(directory, rng):
+    """Small files shaped like training/data's, with consistent kinematics."""
+    def posed(rotations, root, tpose):
+        joints, _ = kinematics.forward_kinematics(*map(torch.from_numpy, (rotations, root, tpose)))
+        return joints.numpy()
+
+    bodies = np.stack([skeleton(rng, h) for h in (0.8, 0.9, 1.0)])
+    for split, n in (("train", 12), ("val", 5)):
+        body = rng.integers(3, size=n)
+        rotations, root = random_quaternions(rng, (n, NUM_JOINTS)), rng.normal(size=(n, 3))
+        joints = posed(rotations, root.astype(np.float32), bodies[body])
+        np.savez(directory / f"skr_{split}.npz", body=body.astype(np.int32), joints=joints,
+                 points=(joints[:, rng.integers(NUM_JOINTS, size=100)]
+                         + rng.normal(0, 0.05, (n, 100, 3))).astype(np.float32))
+        tpose_points = (bodies[body][:, rng.integers(NUM_JOINTS, size=60)]
+                        + rng.normal(0, 0.03, (n, 60, 3))).astype(np.float32)
+        np.savez(directory / f"skin_{split}.npz", tpose_points=tpose_points,
+                 posed_points=tpose_points + 0.01, rotations=rotations,
+                 root=root.astype(np.float32), tpose_joints=bodies[body], joints=joints,
+                 weights=np.full((n, 60, NUM_JOINTS), 1 / NUM_JOINTS, np.float16),
+                 body=body.astype(np.int32))
+        clip_rotations = random_quaternions(rng, (n, 30, NUM_JOINTS))
+        clip_root = np.cumsum(rng.normal(0, 0.02, (n, 30, 3)), axis=1).astype(np.float32)
+        np.savez(directory / f"smrm_{split}.npz", rotations=clip_rotations, root=clip_root,
+                 joints=posed(clip_rotations, clip_root, bodies[body][:, None]),
+                 tpose_joints=bodies[body], body=body.astype(np.int32),
+                 bodies_tpose_joints=bodies)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("training")
+    write_datasets(directory, np.random.default_rng(0))
+    (directory / "tiny.json").write_text(json.dumps(TINY_RECIPE))
+    main(["all", "--recipe", str(directory / "tiny.json"), "--data", str(directory),
+          "--out", str(directory / "run"), "--threads", "1"])
+    return directory
+
+
+def test_all_stages_train_log_and_export_loadable_weights(run):
+    out = run / "run"
+    for stage in ("skr", "skin", "smrm"):
+        rows = (out / f"{stage}.csv").read_text().splitlines()
+        assert len(rows) == 3                     # header + two evaluations
+        assert (out / f"{stage}.png").stat().st_size > 0
+    retargeter = Retargeter.from_weights(out / "weights.npz")
+    assert retargeter.weights.metadata["recipe"]["name"] == "tiny"
+    assert retargeter.weights.config.smrm_layers == 1
+    retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))
+    frame = retargeter.step(np.random.default_rng(2).normal(size=(100, 3)))
+    assert np.isfinite(frame.vertices).all()
+
+
+def test_resume_continues_to_the_same_result(run, tmp_path):
+    """Stop SKR half way, resume: the same weights and log as one uninterrupted run."""
+    common = ["--recipe", str(run / "tiny.json"), "--data", str(run),
+              "--out", str(tmp_path / "resumed"), "--threads", "1"]
+    main(["skr", "--stop-at", "4"] + common)
+    assert torch.load(tmp_path / "resumed" / "skr.pt", weights_only=True)["step"] == 4
+    main(["skr", "--resume"] + common)
+    whole = torch.load(run / "run" / "skr.pt", weights_only=True)
+    resumed = torch.load(tmp_path / "resumed" / "skr.pt", weights_only=True)
+    assert resumed["step"] == whole["step"] == 6
+    for key, value in whole["modules"]["skr"].items():
+        torch.testing.assert_close(resumed["modules"]["skr"][key], value, msg=key)
+    assert resumed["rows"] == [dict(row, seconds=r["seconds"])
+                               for row, r in zip(whole["rows"], resumed["rows"])]
+
+
+def test_recipes_load_and_reject_unknown_keys(tmp_path):
+    assert load_recipe("paper").model.skr_point_widths == (64, 128, 1024)
+    assert load_recipe("cpu").name == "cpu"
+    (tmp_path / "typo.json").write_text(json.dumps({"skr": {"stepz": 1}}))
+    with pytest.raises(ValueError, match="stepz"):
+        load_recipe(tmp_path / "typo.json")
+
+
+def test_skin_loss_is_zero_for_the_true_weights():
+    rng = np.random.default_rng(3)
+    tpose = torch.from_numpy(skeleton(rng, 0.9))[None]
+    points = tpose[:, rng.integers(NUM_JOINTS, size=50)] + 0.05
+    weights = torch.from_numpy(rng.dirichlet(np.ones(NUM_JOINTS), size=(1, 50))).float()
+    rotations = torch.from_numpy(random_quaternions(rng, (1, NUM_JOINTS)))
+    root = torch.tensor([[0.1, 0.9, 0.2]])
+    joints, rotation_matrices = kinematics.forward_kinematics(rotations, root, tpose)
+    posed = kinematics.linear_blend_skinning(
+        points, weights, kinematics.skinning_transforms(joints, rotation_matrices, tpose))
+    assert float(skin_loss(weights, points, posed, rotations, root, tpose)) < 1e-6
+    uniform = torch.full_like(weights, 1 / NUM_JOINTS)
+    assert float(skin_loss(uniform, points, posed, rotations, root, tpose)) > 1e-3
+
+
+def test_rotation_distance_treats_q_and_minus_q_alike():
+    q = torch.from_numpy(random_quaternions(np.random.default_rng(4), (5,)))
+    assert float(rotation_distance(q, -q).abs().max()) < 1e-6
+    assert float(rotation_distance(q, q.flip(0)).max()) > 1e-3
+
+
+def test_ground_truth_on_the_same_body_is_the_source_motion():
+    rng = np.random.default_rng(5)
+    tpose = torch.from_numpy(skeleton(rng, 0.9))[None]
+    rotations = torch.from_numpy(random_quaternions(rng, (1, 4, NUM_JOINTS)))
+    root = torch.from_numpy(rng.normal(size=(1, 4, 3)).astype(np.float32))
+    source, _ = kinematics.forward_kinematics(rotations, root, tpose[:, None])
+    torch.testing.assert_close(retarget_ground_truth(rotations, root, tpose, tpose), source)
+    taller = tpose * 2   # twice the size: twice the root, twice every bone
+    torch.testing.assert_close(retarget_ground_truth(rotations, root, tpose, taller),
+                               source * 2, atol=1e-5, rtol=1e-5)

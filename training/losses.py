@@ -1,0 +1,80 @@
+"""Losses of the three stages. Lengths in metres; batch letters as in minretarget.conventions.
+
+SMRM is trained without retargeting ground truth: a source clip A is retargeted onto another
+body's skeleton B and back, and the losses judge only what can be known without knowing the
+right answer (cycle consistency, realism, smoothness, consistency of rotations).
+"""
+import torch
+import torch.nn.functional as F
+
+from training.kinematics import linear_blend_skinning, skinning_transforms, forward_kinematics
+from training.models.smrm import leg_length, motion_features
+
+
+def skr_loss(predicted, joints):
+    """(B, J, 3) predicted and true joints -> mean squared error, m^2."""
+    return F.mse_loss(predicted, joints)
+
+
+def skin_loss(skin_weights, tpose_points, posed_points, rotations, root, tpose_joints):
+    """Mean distance between the true posed points and LBS of the T-pose points, metres.
+
+    skin_weights (B, Q, J); tpose_points, posed_points (B, Q, 3); rotations (B, J, 4);
+    root (B, 3); tpose_joints (B, J, 3) the skeleton LBS uses (jittered in training).
+    """
+    joints, global_rotations = forward_kinematics(rotations, root, tpose_joints)
+    transforms = skinning_transforms(joints, global_rotations, tpose_joints)
+    posed = linear_blend_skinning(tpose_points, skin_weights, transforms)
+    return (posed - posed_points).norm(dim=-1).mean()
+
+
+def discriminator_input(joints):
+    """(B, T, J, 3) motion -> the discriminator's (features (B, T, J*3 + 3), scale (B,))."""
+    features = motion_features(joints, joints[:, 0, 0, :])
+    return features, leg_length(joints[:, 0]).detach()
+
+
+def rotation_distance(a, b):
+    """(..., 4) unit quaternions -> (...,) 1 - |<a, b>|: 0 for the same rotation (q or -q)."""
+    return 1.0 - (a * b).sum(-1).abs()
+
+
+def acceleration(joints):
+    """(B, T, J, 3) -> (B, T-2, J, 3) second finite differences, metres / frame^2."""
+    return joints[:, 2:] - 2 * joints[:, 1:-1] + joints[:, :-2]
+
+
+def smrm_losses(model, discriminator, source_joints, noisy_joints, source_tpose, target_tpose,
+                weights):
+    """The generator's losses for one batch of clips.
+
+    Args:
+        model: MotionRetargeter.
+        discriminator: MotionDiscriminator.
+        source_joints: (B, T, J, 3) clips A, as the data gives them.
+        noisy_joints: (B, T, J, 3) the same with noise, as SKR would give them: the input.
+        source_tpose, target_tpose: (B, J, 3) A's and another body B's T-pose skeletons.
+        weights: SMRMStage with the loss weights.
+    Returns:
+        (total loss, dict of the unweighted terms as floats, the retargeted joints A -> B).
+    """
+    rotations_ab, _, joints_ab, _ = model(noisy_joints, target_tpose)
+    rotations_aba, _, joints_aba, _ = model(joints_ab, source_tpose)
+    _, _, joints_aa, _ = model(noisy_joints, source_tpose)
+    terms = {
+        "cycle": F.mse_loss(joints_aba, source_joints),
+        "reconstruction": F.mse_loss(joints_aa, source_joints),
+        "adversarial": ((discriminator(*discriminator_input(joints_ab)) - 1) ** 2).mean(),
+        # A -> B and B -> A perform the same motion, so their local rotations agree.
+        "rotation_cycle": rotation_distance(rotations_ab, rotations_aba).mean(),
+        "smoothness": acceleration(joints_ab).pow(2).sum(-1).mean(),
+    }
+    total = sum(getattr(weights, name) * value for name, value in terms.items())
+    return total, {k: v.item() for k, v in terms.items()}, joints_ab
+
+
+def discriminator_loss(discriminator, real_joints, fake_joints):
+    """Least-squares GAN loss: real clips score 1, retargeted clips 0."""
+    real = discriminator(*discriminator_input(real_joints))
+    fake = discriminator(*discriminator_input(fake_joints.detach()))
+    return ((real - 1) ** 2).mean() + (fake ** 2).mean()

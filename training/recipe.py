@@ -1,0 +1,92 @@
+"""Training recipes: one JSON file holds the model sizes and every stage's schedule.
+
+    training/recipes/paper.json   the paper's sizes and schedule (for a GPU)
+    training/recipes/cpu.json     shrunk to finish within about 2 hours on 2 CPU cores
+Unknown keys are errors, so a typo cannot silently fall back to a default.
+"""
+import dataclasses
+import json
+from pathlib import Path
+
+from minretarget.config import ModelConfig
+
+RECIPES = Path(__file__).parent / "recipes"
+
+
+@dataclasses.dataclass(frozen=True)
+class SKRStage:
+    steps: int = 20_000
+    batch_size: int = 32
+    learning_rate: float = 1e-4
+    points: int = 2048           # source points per training cloud (a random subset per batch)
+    eval_every: int = 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class SKINStage:
+    steps: int = 10_000
+    batch_size: int = 8
+    learning_rate: float = 1e-4
+    points: int = 1024           # surface points per sample
+    joint_noise: float = 0.02    # metres: T-pose joints are jittered so SKR's errors do no harm
+    eval_every: int = 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class SMRMStage:
+    steps: int = 40_000
+    batch_size: int = 64
+    learning_rate: float = 1e-4
+    discriminator_learning_rate: float = 1e-4
+    discriminator_width: int = 256
+    input_noise: float = 0.01    # metres of Gaussian noise on source joints, as SKR makes
+    # Loss weights: joint cycle A -> B -> A, reconstruction A -> A, adversarial, rotation
+    # cycle and smoothness (the last two as in the paper).
+    cycle: float = 1.0
+    reconstruction: float = 1.0
+    adversarial: float = 0.01
+    rotation_cycle: float = 0.01
+    smoothness: float = 0.001
+    eval_every: int = 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    name: str = "paper"
+    seed: int = 0
+    model: ModelConfig = ModelConfig()
+    skr: SKRStage = SKRStage()
+    skin: SKINStage = SKINStage()
+    smrm: SMRMStage = SMRMStage()
+
+    def to_json(self):
+        return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
+
+
+def _build(cls, values, where):
+    if not isinstance(values, dict):
+        raise ValueError(f"{where}: expected an object, got {values!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {unknown}; known: {sorted(fields)}")
+    kwargs = {}
+    for key, value in values.items():
+        default = fields[key].default
+        if dataclasses.is_dataclass(default):
+            kwargs[key] = _build(type(default), value, f"{where}.{key}")
+        else:
+            kwargs[key] = value
+    return cls(**kwargs)
+
+
+def load_recipe(path):
+    """A recipe from a JSON file (a path, or the name of a file in training/recipes)."""
+    path = Path(path)
+    if not path.exists() and (RECIPES / f"{path}.json").exists():
+        path = RECIPES / f"{path}.json"
+    try:
+        values = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path}: cannot read the recipe ({error})") from None
+    return _build(Recipe, values, str(path))

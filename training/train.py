@@ -1,0 +1,363 @@
+"""Train the three networks stage by stage, then export the runtime's weights file.
+
+    python -m training.train {skr,skin,smrm,all} --recipe cpu --data data --out runs/cpu
+                             [--resume] [--device cpu|cuda] [--threads N]
+
+Each stage writes into --out: ``<stage>.pt`` (checkpoint, written atomically every eval),
+``<stage>.csv`` (losses and validation metrics), ``<stage>.png`` (their plot). ``all`` then
+exports ``weights.npz`` (minretarget's format) recording the recipe, the data and the commit.
+--resume continues each unfinished stage from its checkpoint; finished stages are skipped.
+Validation uses the held-out training subjects and bodies (``*_val.npz``), never the test split.
+"""
+import argparse
+import csv
+import io
+import json
+import math
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from minretarget.atomic import atomic_write
+from training.export import export_weights
+from training.kinematics import forward_kinematics
+from training.losses import discriminator_loss, skin_loss, skr_loss, smrm_losses
+from training.models import MotionDiscriminator, MotionRetargeter, SkeletonRegressor, SkinningField
+from training.recipe import load_recipe
+
+STAGES = ("skr", "skin", "smrm")
+VALIDATION_LIMIT = 2048   # validation samples per evaluation, to bound its time
+
+
+def load_split(data_dir, name, device):
+    """``DIR/name.npz`` -> {key: tensor on device} (no pickle)."""
+    path = Path(data_dir) / f"{name}.npz"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: build the data first "
+                                "(python -m training.data build --out DIR)")
+    with np.load(path, allow_pickle=False) as data:
+        return {key: torch.from_numpy(np.asarray(data[key], dtype=np.float32)
+                                      if data[key].dtype.kind == "f" else data[key]).to(device)
+                for key in data.files}
+
+
+def learning_rate(step, steps, base):
+    """Linear warm-up over the first 2% of steps, then cosine decay to 10% of ``base``."""
+    warmup = max(1, steps // 50)
+    if step < warmup:
+        return base * (step + 1) / warmup
+    progress = (step - warmup) / max(1, steps - warmup)
+    return base * (0.1 + 0.45 * (1 + math.cos(math.pi * progress)))
+
+
+class Stage:
+    """The loop every stage shares: batches, schedule, logging, evaluation, checkpoints."""
+
+    def __init__(self, name, run_dir, modules, optimizers, steps, eval_every, seed):
+        self.name, self.run_dir = name, Path(run_dir)
+        self.modules, self.optimizers = modules, optimizers
+        self.steps, self.eval_every = steps, eval_every
+        self.base_rates = {k: o.param_groups[0]["lr"] for k, o in optimizers.items()}
+        self.generator = torch.Generator().manual_seed(seed)
+        self.step = 0
+        self.rows = []
+        self.running = {}   # loss sums since the last evaluation
+
+    @property
+    def checkpoint_path(self):
+        return self.run_dir / f"{self.name}.pt"
+
+    def save(self):
+        state = {"step": self.step, "rows": self.rows, "running": self.running,
+                 "modules": {k: m.state_dict() for k, m in self.modules.items()},
+                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+                 "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state()}
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        with atomic_write(self.checkpoint_path) as file:
+            file.write(buffer.getvalue())
+
+    def load(self):
+        state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+        for key, module in self.modules.items():
+            module.load_state_dict(state["modules"][key])
+        for key, optimizer in self.optimizers.items():
+            optimizer.load_state_dict(state["optimizers"][key])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self.step, self.rows, self.running = state["step"], state["rows"], state["running"]
+
+    def batch(self, count, size):
+        return torch.randint(count, (size,), generator=self.generator)
+
+    def run(self, train_step, evaluate, resume, stop_at=None):
+        """Call ``train_step(stage) -> {loss: float}`` until ``steps`` (or ``stop_at``, with a
+        checkpoint to resume from); evaluate with ``evaluate() -> {metric: float}`` every
+        ``eval_every`` steps and at the end. Returns whether the stage is finished."""
+        if resume and self.checkpoint_path.exists():
+            self.load()
+            print(f"{self.name}: resumed at step {self.step}/{self.steps}")
+        end = self.steps if stop_at is None else min(self.steps, stop_at)
+        progress = tqdm(total=self.steps, initial=self.step, desc=self.name, unit="step")
+        started = time.perf_counter()
+        while self.step < end:
+            for key, optimizer in self.optimizers.items():
+                for group in optimizer.param_groups:
+                    group["lr"] = learning_rate(self.step, self.steps, self.base_rates[key])
+            for module in self.modules.values():
+                module.train()
+            for key, value in train_step(self).items():
+                self.running[key] = self.running.get(key, 0.0) + value
+            self.step += 1
+            progress.update(1)
+            if self.step % self.eval_every == 0 or self.step == self.steps:
+                for module in self.modules.values():
+                    module.eval()
+                with torch.no_grad():
+                    metrics = evaluate()
+                count = (self.step - 1) % self.eval_every + 1   # steps summed in running
+                row = {"step": self.step, "seconds": round(time.perf_counter() - started, 1),
+                       **{k: v / count for k, v in self.running.items()}, **metrics}
+                self.rows.append(row)
+                self.running = {}
+                progress.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()})
+                self.save()
+                self.write_log()
+        if self.step < self.steps:
+            self.save()
+        progress.close()
+        for module in self.modules.values():
+            module.eval()
+        return self.step == self.steps
+
+    def write_log(self):
+        """The CSV of every evaluation row so far, and its plot."""
+        keys = list(dict.fromkeys(k for row in self.rows for k in row))
+        text = io.StringIO()
+        writer = csv.DictWriter(text, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(self.rows)
+        with atomic_write(self.run_dir / f"{self.name}.csv") as file:
+            file.write(text.getvalue().encode())
+        plot_log(self.rows, self.run_dir / f"{self.name}.png", self.name)
+
+
+def plot_log(rows, path, title):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    keys = [k for k in rows[0] if k not in ("step", "seconds")]
+    steps = [row["step"] for row in rows]
+    figure, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3), squeeze=False)
+    for axis, key in zip(axes[0], keys):
+        axis.plot(steps, [row.get(key, np.nan) for row in rows], marker=".")
+        axis.set_title(key, fontsize=9)
+        axis.set_xlabel("step")
+        axis.set_yscale("log" if all(row.get(key, 1) > 0 for row in rows) else "linear")
+    figure.suptitle(title)
+    figure.tight_layout()
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=80)
+    plt.close(figure)
+    with atomic_write(path) as file:
+        file.write(buffer.getvalue())
+
+
+def subsample_points(points, count, generator):
+    """(B, P, 3) -> (B, count, 3): a random subset of each cloud (a fresh one every batch)."""
+    if count >= points.shape[1]:
+        return points
+    keys = torch.rand(points.shape[:2], generator=generator).to(points.device)
+    return torch.gather(points, 1, keys.argsort(dim=1)[:, :count, None].expand(-1, -1, 3))
+
+
+def mean_over_batches(count, size, function):
+    """Average ``function(index tensor) -> {name: float}`` over the first ``count`` samples."""
+    totals, seen = {}, 0
+    for start in range(0, count, size):
+        index = torch.arange(start, min(start + size, count))
+        for key, value in function(index).items():
+            totals[key] = totals.get(key, 0.0) + value * len(index)
+        seen += len(index)
+    return {k: v / seen for k, v in totals.items()}
+
+
+# ----------------------------------------------------------------------------- stages
+
+def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None):
+    stage_recipe = recipe.skr
+    train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
+    model = SkeletonRegressor(recipe.model).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
+    stage = Stage("skr", run_dir, {"skr": model}, {"skr": optimizer}, stage_recipe.steps,
+                  stage_recipe.eval_every, recipe.seed)
+
+    def train_step(stage):
+        index = stage.batch(len(train["points"]), stage_recipe.batch_size)
+        points = subsample_points(train["points"][index], stage_recipe.points, stage.generator)
+        loss = skr_loss(model(points), train["joints"][index])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return {"loss": loss.item()}
+
+    def evaluate():
+        def errors(index):
+            predicted = model(val["points"][index])
+            return {"val_mpjpe": float((predicted - val["joints"][index]).norm(dim=-1).mean())}
+        return mean_over_batches(min(VALIDATION_LIMIT, len(val["points"])), 64, errors)
+
+    return model, stage.run(train_step, evaluate, resume, stop_at)
+
+
+def train_skin(recipe, data_dir, run_dir, device, resume, stop_at=None):
+    stage_recipe = recipe.skin
+    train, val = (load_split(data_dir, f"skin_{s}", device) for s in ("train", "val"))
+    model = SkinningField(recipe.model).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
+    stage = Stage("skin", run_dir, {"skin": model}, {"skin": optimizer}, stage_recipe.steps,
+                  stage_recipe.eval_every, recipe.seed + 1)
+
+    def loss_of(data, index, joint_noise, generator=None):
+        tpose_joints = data["tpose_joints"][index]
+        noise = torch.randn(tpose_joints.shape, generator=generator).to(device)
+        tpose_joints = tpose_joints + joint_noise * noise
+        points = data["tpose_points"][index]
+        weights = model(points, tpose_joints)
+        return skin_loss(weights, points, data["posed_points"][index], data["rotations"][index],
+                         data["root"][index], tpose_joints)
+
+    def train_step(stage):
+        index = stage.batch(len(train["tpose_points"]), stage_recipe.batch_size)
+        loss = loss_of(train, index, stage_recipe.joint_noise, stage.generator)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return {"loss": loss.item()}
+
+    def evaluate():
+        generator = torch.Generator().manual_seed(0)   # the same jitter at every evaluation
+        return mean_over_batches(
+            min(VALIDATION_LIMIT, len(val["tpose_points"])), 32,
+            lambda index: {"val_vertex_error": float(loss_of(val, index, 0.0)),
+                           "val_vertex_error_jittered": float(loss_of(
+                               val, index, stage_recipe.joint_noise, generator))})
+
+    return model, stage.run(train_step, evaluate, resume, stop_at)
+
+
+def retarget_ground_truth(rotations, root, source_tpose, target_tpose):
+    """Mixamo-style ground truth: A's local rotations on B, root scaled by the hip heights.
+
+    rotations (B, T, J, 4), root (B, T, 3), tpose (B, J, 3) with feet at y = 0 -> (B, T, J, 3).
+    """
+    ratio = target_tpose[:, 0, 1] / source_tpose[:, 0, 1]
+    joints, _ = forward_kinematics(rotations, root * ratio[:, None, None], target_tpose[:, None])
+    return joints
+
+
+def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None):
+    stage_recipe = recipe.smrm
+    train, val = (load_split(data_dir, f"smrm_{s}", device) for s in ("train", "val"))
+    model = MotionRetargeter(recipe.model).to(device)
+    discriminator = MotionDiscriminator(recipe.model, stage_recipe.discriminator_width).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
+    optimizer_d = torch.optim.Adam(discriminator.parameters(),
+                                   lr=stage_recipe.discriminator_learning_rate)
+    stage = Stage("smrm", run_dir, {"smrm": model, "discriminator": discriminator},
+                  {"smrm": optimizer, "discriminator": optimizer_d}, stage_recipe.steps,
+                  stage_recipe.eval_every, recipe.seed + 2)
+    bodies = train["bodies_tpose_joints"]
+
+    def train_step(stage):
+        count, size = len(train["joints"]), stage_recipe.batch_size
+        index = stage.batch(count, size)
+        joints = train["joints"][index]
+        noise = torch.randn(joints.shape, generator=stage.generator).to(device)
+        target = bodies[torch.randint(len(bodies), (size,), generator=stage.generator)]
+        loss, terms, joints_ab = smrm_losses(
+            model, discriminator, joints, joints + stage_recipe.input_noise * noise,
+            train["tpose_joints"][index], target, stage_recipe)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        real = train["joints"][stage.batch(count, size)]
+        loss_d = discriminator_loss(discriminator, real, joints_ab)
+        optimizer_d.zero_grad(set_to_none=True)
+        loss_d.backward()
+        optimizer_d.step()
+        return {"loss": loss.item(), **terms, "discriminator": loss_d.item()}
+
+    # Validation: each clip onto the next validation body, against the Mixamo ground truth.
+    val_bodies = val["bodies_tpose_joints"]
+
+    def evaluate():
+        def errors(index):
+            target = val_bodies[(val["body"][index].long() + 1) % len(val_bodies)]
+            _, _, joints, _ = model(val["joints"][index], target)
+            truth = retarget_ground_truth(val["rotations"][index], val["root"][index],
+                                          val["tpose_joints"][index], target)
+            local = lambda x: x - x[:, :, :1]  # noqa: E731
+            return {"val_mpjpe": float((joints - truth).norm(dim=-1).mean()),
+                    "val_mpjpe_root_relative": float(
+                        (local(joints) - local(truth)).norm(dim=-1).mean())}
+        return mean_over_batches(min(VALIDATION_LIMIT, len(val["joints"])), 128, errors)
+
+    return model, stage.run(train_step, evaluate, resume, stop_at)
+
+
+# ----------------------------------------------------------------------------- command line
+
+def provenance(recipe, data_dir):
+    """What made these weights: recipe, data manifest summary, commit."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    manifest_path = Path(data_dir) / "manifest.json"
+    manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
+    return {"recipe": json.loads(recipe.to_json()), "commit": commit,
+            "data": {k: manifest.get(k) for k in ("config", "counts", "actor_hip_height")}}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("stage", choices=STAGES + ("all",))
+    parser.add_argument("--recipe", required=True,
+                        help="a recipe JSON file, or the name of one in training/recipes")
+    parser.add_argument("--data", default="data", help="the directory of the built datasets")
+    parser.add_argument("--out", required=True, help="the run directory")
+    parser.add_argument("--resume", action="store_true", help="continue from checkpoints")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--threads", type=int, help="torch CPU threads")
+    parser.add_argument("--stop-at", type=int, metavar="STEP",
+                        help="stop each stage at this step, checkpointed, to --resume later")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    recipe = load_recipe(args.recipe)
+    run_dir = Path(args.out)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "recipe.json").write_text(recipe.to_json())
+    torch.manual_seed(recipe.seed)
+    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm}
+    models, finished = {}, True
+    for name in STAGES if args.stage == "all" else (args.stage,):
+        start = time.perf_counter()
+        models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
+                                            args.resume, args.stop_at)
+        print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
+        finished = finished and done
+    if args.stage == "all" and finished:
+        path = run_dir / "weights.npz"
+        export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
+                       metadata=provenance(recipe, args.data))
+        print(f"exported {path}")
+
+if __name__ == "__main__":
+    main()
