@@ -1,0 +1,190 @@
+"""Dataset build: a tiny build on synthetic motions; contents, ground truth and determinism.
+
+Needs anny (the 12 bodies of a tiny build take about 10 s once anny's model cache exists).
+"""
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("anny")
+
+from minretarget.conventions import NUM_JOINTS  # noqa: E402
+from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # noqa: E402
+from training.data import bodies  # noqa: E402
+from training.data.cmu import Motion  # noqa: E402
+from training.data.datasets import CLIP_FRAMES, BuildConfig, augment, build  # noqa: E402
+
+ACTOR_HIP_HEIGHT = 0.9
+TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
+                   clip_stride=10)
+
+
+def _walk(name, frames, phase=0.0):
+    """A synthetic motion: legs and arms swinging about x, root walking along +Z at hip height."""
+    t = np.arange(frames) / 30.0
+    angles = np.zeros((frames, NUM_JOINTS))
+    for joint, sign in ((1, 1), (2, -1), (16, -1), (17, 1)):     # hips and shoulders
+        angles[:, joint] = sign * 0.4 * np.sin(2 * np.pi * t + phase)
+    angles[:, 4] = angles[:, 5] = 0.3                              # knees
+    rotations = np.zeros((frames, NUM_JOINTS, 4), np.float32)
+    rotations[..., 0], rotations[..., 1] = np.cos(angles / 2), np.sin(angles / 2)
+    root = np.stack([np.zeros(frames), np.full(frames, ACTOR_HIP_HEIGHT), 1.2 * t], axis=1)
+    return Motion(name=name, rotations=rotations, root=root.astype(np.float32), fps=30,
+                  category="walk", source_fps=30)
+
+
+MOTIONS = {"train": [_walk("train_a", 50), _walk("train_b", 40, 1.0)],
+           "val": [_walk("val_a", 45, 2.0)],
+           "test": [_walk("test_b", 20, 0.5), _walk("test_a", 35, 1.5)]}
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("bodies")
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory, cache):
+    out = tmp_path_factory.mktemp("data")
+    summary = build(MOTIONS, ACTOR_HIP_HEIGHT, out, TINY, cache_dir=cache, show_progress=False)
+    return out, summary
+
+
+def _load(path):
+    with np.load(path, allow_pickle=False) as data:
+        return dict(data)
+
+
+def _body(summary, split, index, cache):
+    name = summary["bodies"][split][index]
+    return bodies.get_body(summary["phenotypes"][name], name, cache)
+
+
+def test_files_and_shapes(built):
+    out, summary = built
+    skr = _load(out / "skr_train.npz")
+    assert skr["points"].shape == (12, 64, 3) and skr["points"].dtype == np.float32
+    assert skr["joints"].shape == (12, NUM_JOINTS, 3) and skr["body"].shape == (12,)
+    assert _load(out / "skr_val.npz")["points"].shape == (1, 64, 3)
+    skin = _load(out / "skin_train.npz")
+    assert skin["tpose_points"].shape == skin["posed_points"].shape == (6, 32, 3)
+    assert skin["weights"].shape == (6, 32, NUM_JOINTS) and skin["weights"].dtype == np.float16
+    smrm = _load(out / "smrm_train.npz")
+    # Windows of 30 frames every 10 inside each trial: 50 frames -> 3, 40 frames -> 2.
+    assert smrm["joints"].shape == (5, CLIP_FRAMES, NUM_JOINTS, 3)
+    assert smrm["rotations"].shape == (5, CLIP_FRAMES, NUM_JOINTS, 4)
+    assert smrm["bodies_tpose_joints"].shape == (2, NUM_JOINTS, 3)
+    assert _load(out / "smrm_val.npz")["joints"].shape == (2, CLIP_FRAMES, NUM_JOINTS, 3)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["counts"]["test_sequences"] == 2 and manifest["counts"]["test_frames"] == 55
+    assert sorted(p.name for p in (out / "test").iterdir()) == ["test_a.npz", "test_b.npz"]
+    assert summary["total_bytes"] == sum(p.stat().st_size for p in out.rglob("*.npz"))
+
+
+def test_training_samples_scale_the_root_by_hip_height(built, cache):
+    out, summary = built
+    skr = _load(out / "skr_train.npz")
+    for n in range(len(skr["body"])):
+        body = _body(summary, "train", skr["body"][n], cache)
+        # The synthetic actor's pelvis stays at its hip height: the body's does too.
+        assert abs(skr["joints"][n, 0, 1] - body.hip_height) < 1e-5
+        # Bone lengths are the body's.
+        np.testing.assert_allclose(np.linalg.norm(skr["joints"][n, 4] - skr["joints"][n, 1]),
+                                   np.linalg.norm(body.joints[4] - body.joints[1]), rtol=1e-4)
+        # Points lie around the body: within its reach of the pelvis.
+        assert np.linalg.norm(skr["points"][n] - skr["joints"][n, 0], axis=1).max() < body.height
+
+
+def test_skin_points_correspond(built, cache):
+    out, summary = built
+    skin = _load(out / "skin_train.npz")
+    np.testing.assert_allclose(skin["weights"].astype(np.float32).sum(-1), 1.0, atol=5e-3)
+    for n in range(len(skin["body"])):
+        body = _body(summary, "train", skin["body"][n], cache)
+        np.testing.assert_array_equal(skin["tpose_joints"][n], body.joints)
+        joints, rotations = forward_kinematics(skin["rotations"][n], skin["root"][n], body.joints)
+        np.testing.assert_allclose(skin["joints"][n], joints, atol=1e-5)
+        # LBS of the T-pose points with their interpolated weights lands near the posed points
+        # (LBS of interpolated weights vs interpolation of LBS: equal up to a few mm).
+        transforms = np.concatenate([rotations, (joints - np.einsum(
+            "jab,jb->ja", rotations, body.joints))[..., None]], axis=-1)       # (J, 3, 4)
+        blended = np.einsum("qj,jab->qab", skin["weights"][n].astype(np.float32), transforms)
+        posed = np.einsum("qab,qb->qa", blended[..., :3], skin["tpose_points"][n]) + blended[..., 3]
+        assert np.linalg.norm(posed - skin["posed_points"][n], axis=1).max() < 0.02
+
+
+def test_smrm_clips_are_fk_of_their_rotations(built):
+    out, _ = built
+    smrm = _load(out / "smrm_train.npz")
+    joints, _ = forward_kinematics(smrm["rotations"], smrm["root"], smrm["tpose_joints"][:, None])
+    np.testing.assert_allclose(smrm["joints"], joints, atol=1e-5)
+    np.testing.assert_array_equal(smrm["tpose_joints"],
+                                  smrm["bodies_tpose_joints"][smrm["body"]])
+
+
+def test_test_sequences_are_mixamo_ground_truth(built, cache):
+    out, summary = built
+    targets, sources = bodies.test_bodies(cache)
+    for i, name in enumerate(["test_a", "test_b"]):                # sorted by name, cycled
+        seq = _load(out / "test" / f"{name}.npz")
+        source, target = sources[0], targets[i]
+        assert str(seq["source_body"]) == source.name and str(seq["target_body"]) == target.name
+        assert str(seq["name"]) == name and str(seq["category"]) == "walk"
+        motion = next(m for m in MOTIONS["test"] if m.name == name)
+        frames = len(motion.rotations)
+        assert seq["source_points"].shape == (frames, 64, 3)
+        assert seq["target_points"].shape == (frames, len(target.vertices), 3)
+        np.testing.assert_array_equal(seq["rotations"], motion.rotations)
+        np.testing.assert_allclose(seq["target_root"],
+                                   seq["source_root"] * target.hip_height / source.hip_height,
+                                   rtol=1e-5)
+        np.testing.assert_allclose(seq["source_root"],
+                                   motion.root * source.hip_height / ACTOR_HIP_HEIGHT, rtol=1e-5)
+        vertices, joints = bodies.pose_body(target, motion.rotations, seq["target_root"])
+        np.testing.assert_allclose(seq["target_points"], vertices, atol=1e-5)
+        np.testing.assert_allclose(seq["target_joints"], joints, atol=1e-5)
+        source_joints = forward_kinematics(motion.rotations, seq["source_root"], source.joints)[0]
+        np.testing.assert_allclose(seq["source_joints"], source_joints, atol=1e-5)
+        np.testing.assert_array_equal(seq["target_tpose_points"], target.vertices)
+        np.testing.assert_array_equal(seq["target_faces"], target.faces)
+        np.testing.assert_array_equal(seq["target_weights"], target.weights)
+        # Fresh clouds every frame, on the source body (near its posed joints).
+        assert not np.array_equal(seq["source_points"][0], seq["source_points"][1])
+        reach = np.linalg.norm(seq["source_points"] - seq["source_joints"][:, :1], axis=-1)
+        assert reach.max() < source.height
+
+
+def test_builds_are_deterministic(built, cache, tmp_path):
+    out, _ = built
+    build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path / "again", TINY, cache_dir=cache,
+          show_progress=False)
+    for path in sorted(out.rglob("*.npz")):
+        first, second = _load(path), _load(tmp_path / "again" / path.relative_to(out))
+        assert first.keys() == second.keys()
+        for key in first:
+            assert first[key].dtype == second[key].dtype
+            assert first[key].tobytes() == second[key].tobytes(), (path.name, key)
+    other = build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path / "other",
+                  BuildConfig(**{**TINY.__dict__, "seed": 4}), cache_dir=cache,
+                  show_progress=False)
+    assert other["counts"] == json.loads((out / "manifest.json").read_text())["counts"]
+    assert not np.array_equal(_load(out / "skr_train.npz")["points"],
+                              _load(tmp_path / "other" / "skr_train.npz")["points"])
+
+
+def test_augment_turns_about_y_and_shifts():
+    rng = np.random.default_rng(0)
+    rotations = rng.normal(size=(4, NUM_JOINTS, 4)).astype(np.float32)
+    rotations /= np.linalg.norm(rotations, axis=-1, keepdims=True)
+    root = rng.normal(size=(4, 3)).astype(np.float32)
+    heading, shift = rng.uniform(0, 6, 4), rng.normal(size=(4, 2))
+    turned, moved = augment(rotations, root, heading, shift)
+    np.testing.assert_array_equal(turned[:, 1:], rotations[:, 1:])
+    c, s = np.cos(heading), np.sin(heading)
+    turn = np.zeros((4, 3, 3))
+    turn[:, 0, 0], turn[:, 0, 2], turn[:, 1, 1], turn[:, 2, 0], turn[:, 2, 2] = c, s, 1, -s, c
+    np.testing.assert_allclose(quaternion_to_matrix(turned[:, 0]),
+                               turn @ quaternion_to_matrix(rotations[:, 0]), atol=1e-5)
+    expected = np.einsum("nab,nb->na", turn, root) + np.insert(shift, 1, 0.0, axis=1)
+    np.testing.assert_allclose(moved, expected, atol=1e-5)

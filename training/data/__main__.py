@@ -1,0 +1,91 @@
+"""Command line: build the datasets, or draw a preview of bodies walking.
+
+    python -m training.data build --cmu ../shared/data/cmu --out data [--bodies N] [--frames N]
+                                  [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
+                                  [--clip-stride K] [--body-cache DIR]
+    python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
+"""
+import argparse
+import sys
+import time
+
+from .datasets import BuildConfig, build, cmu_motions
+
+_DEFAULTS = BuildConfig()
+
+
+def _size(num_bytes):
+    for unit in ("B", "KB", "MB", "GB"):
+        if num_bytes < 1024 or unit == "GB":
+            return f"{num_bytes:.1f} {unit}" if unit != "B" else f"{num_bytes} B"
+        num_bytes /= 1024
+
+
+def _build(args):
+    start = time.perf_counter()
+    config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
+                         points=args.points, skin_samples=args.skin_samples,
+                         skin_points=args.skin_points, clip_stride=args.clip_stride)
+    motions, actor_hip_height = cmu_motions(args.cmu)
+    summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache)
+    counts = summary["counts"]
+    print(f"\nbuilt {args.out} in {time.perf_counter() - start:.0f} s "
+          f"(datasets {summary['seconds']:.0f} s), {_size(summary['total_bytes'])} in all")
+    print(f"  motions: {counts['trials_train']} train / {counts['trials_val']} val / "
+          f"{counts['trials_test']} test trials; {counts['motion_frames_train']} train and "
+          f"{counts['motion_frames_val']} val frames at 30 fps; actor hip height "
+          f"{actor_hip_height:.3f} m")
+    print(f"  bodies: {counts['bodies_train']} train, {counts['bodies_val']} val, 8 test")
+    for kind, unit in (("skr", "frames"), ("skin", "samples"), ("smrm", "clips")):
+        sizes = [summary["files"][f"{kind}_{s}.npz"] for s in ("train", "val")]
+        print(f"  {kind}: {counts[kind + '_train']} train / {counts[kind + '_val']} val {unit} "
+              f"({_size(sizes[0])} + {_size(sizes[1])})")
+    test_bytes = sum(v for k, v in summary["files"].items() if k.startswith("test/"))
+    print(f"  test: {counts['test_sequences']} sequences, {counts['test_frames']} frames "
+          f"({_size(test_bytes)})")
+
+
+def _preview(args):
+    from . import cmu
+    from .preview import render
+    trials = {t.name: t for t in cmu.list_trials(args.cmu)}
+    if args.trial not in trials:
+        sys.exit(f"no trial {args.trial!r} under {args.cmu}")
+    motion = cmu.load_motion(trials[args.trial].path)
+    render(motion, float(cmu.cmu_tpose_joints(trials[args.trial].path)[0, 1]), args.out,
+           cache_dir=args.body_cache)
+    print(f"wrote {args.out}")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m training.data", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    build_parser = commands.add_parser("build", help="build every dataset (deterministic)")
+    build_parser.add_argument("--cmu", required=True, help="the CMU BVH folder")
+    build_parser.add_argument("--out", required=True, help="output folder")
+    for name, help_text in (
+            ("seed", "random seed"),
+            ("bodies", "training bodies (validation: an eighth, at least 2; paper: 120)"),
+            ("frames", "SKR training frames (validation: a tenth; paper: ~65,000)"),
+            ("points", "points per source cloud (SKR and test frames)"),
+            ("skin_samples", "SKIN training samples (validation: a tenth)"),
+            ("skin_points", "surface points per SKIN sample"),
+            ("clip_stride", "frames between the starts of consecutive SMRM clips")):
+        build_parser.add_argument("--" + name.replace("_", "-"), type=int,
+                                  default=getattr(_DEFAULTS, name),
+                                  help=f"{help_text} (default {getattr(_DEFAULTS, name)})")
+    preview_parser = commands.add_parser("preview", help="draw bodies walking into a png")
+    preview_parser.add_argument("--out", required=True, help="output .png")
+    preview_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")
+    preview_parser.add_argument("--trial", default="07_01", help="CMU trial to play (a walk)")
+    for sub in (build_parser, preview_parser):
+        sub.add_argument("--body-cache", default=None,
+                         help="body cache folder (default $MINRETARGET_CACHE/bodies or "
+                              "~/.cache/minretarget/bodies)")
+    args = parser.parse_args(argv)
+    (_build if args.command == "build" else _preview)(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,359 @@
+"""Training, validation and test data: motions played on anny bodies, saved as ``.npz`` files.
+
+Every file is written by ``np.savez`` (to a temporary name, then renamed) and is read with
+``np.load(path, allow_pickle=False)``. Lengths are metres, rotations are canonical local
+quaternions (w, x, y, z), frames are 30 fps (``minretarget.conventions``). ``body`` arrays index
+the body names of ``manifest.json``'s ``bodies[split]``.
+
+``skr_{train,val}.npz``: static frames for the skeleton regressor.
+    points (N, P, 3) float32: an area-uniform sample of the posed mesh, in random order.
+    joints (N, J, 3) float32: the posed joints.    body (N,) int32.
+``skin_{train,val}.npz``: T-pose and posed surface points in correspondence, for the skinning
+field.
+    tpose_points (N, Q, 3) float32, posed_points (N, Q, 3) float32: the same surface points
+    (triangle, barycentric coordinates drawn once per sample) on the T-pose and posed mesh.
+    weights (N, Q, J) float16: the mesh's skinning weights interpolated at those points.
+    rotations (N, J, 4) float32, root (N, 3) float32, tpose_joints (N, J, 3) float32,
+    joints (N, J, 3) float32 (posed), body (N,) int32.
+``smrm_{train,val}.npz``: 30-frame skeleton clips for motion retargeting.
+    joints (N, 30, J, 3) float32, rotations (N, 30, J, 4) float32, root (N, 30, 3) float32,
+    tpose_joints (N, J, 3) float32 (the clip's body), body (N,) int32, and
+    bodies_tpose_joints (B, J, 3) float32: every body of the split, to draw other targets from.
+``test/<sequence>.npz``: one whole test trial (the DESIGN.md benchmark), source -> target.
+    source_points (T, P, 3) float32: a fresh sample and order every frame.
+    source_joints (T, J, 3), source_root (T, 3), source_tpose_joints (J, 3) float32.
+    rotations (T, J, 4) float32: the motion's local rotations, shared by source and target.
+    target_tpose_points (V, 3) float32 (the target mesh's vertices), target_faces (F, 3) int32,
+    target_tpose_joints (J, 3) float32, target_weights (V, J) float32.
+    target_joints (T, J, 3), target_root (T, 3), target_points (T, V, 3) float32: the ground
+    truth as Mixamo makes it: the same local rotations on the target, the root translation
+    scaled by the ratio of hip heights (target / source).
+    name, category, source_body, target_body: str; fps: int.
+
+Training samples: a random training body plays a random motion frame or clip; the motion's
+root translation is scaled by (body hip height / actor hip height) so the feet stay on the
+ground, then turned by a random heading about +Y (root rotation and root translation) and
+shifted by a random horizontal translation.
+"""
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from minretarget.conventions import FPS, NUM_JOINTS
+from minretarget.kinematics import forward_kinematics, quaternion_multiply
+
+from .bodies import body_from_seed, pose_body, sampled_body_seeds, test_bodies
+from .cmu import cmu_tpose_joints, list_trials, load_motion
+from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
+
+CLIP_FRAMES = 30
+# Training subjects held out for validation (basketball and running; about 3,000 frames).
+VALIDATION_SUBJECTS = frozenset({"06", "09"})
+# Frames posed at once: bounds memory to about CHUNK x V x 12 float32 (~170 MB at 256).
+CHUNK = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class BuildConfig:
+    """Sizes of a build. Validation gets a tenth of each training count (bodies: an eighth)."""
+    seed: int = 0
+    bodies: int = 120            # training bodies (the paper: 120)
+    frames: int = 20_000         # SKR training frames (the paper: ~65,000)
+    points: int = 2048           # P, points of a source cloud (SKR frames and test frames)
+    skin_samples: int = 2_000    # SKIN training samples
+    skin_points: int = 1024      # Q, surface points per SKIN sample
+    clip_stride: int = 10        # frames between the starts of consecutive SMRM clips
+    max_shift: float = 1.0       # horizontal translation augmentation, uniform in +-max_shift, metres
+
+    @property
+    def val_bodies(self):
+        return max(2, self.bodies // 8)
+
+
+# ----------------------------------------------------------------------------- augmentation
+
+def heading_quaternions(angles):
+    """(...,) angles about +Y, radians -> (..., 4) float32 quaternions (w, x, y, z)."""
+    half = np.asarray(angles, dtype=np.float64) / 2
+    zeros = np.zeros_like(half)
+    return np.stack([np.cos(half), zeros, np.sin(half), zeros], axis=-1).astype(np.float32)
+
+
+def augment(rotations, root, heading, shift):
+    """Turn a motion about +Y through the world origin, then shift it horizontally.
+
+    Args:
+        rotations: (..., J, 4) float32 local quaternions.
+        root: (..., 3) float32 pelvis positions, metres.
+        heading: (...,) angles about +Y, radians.
+        shift: (..., 2) horizontal (x, z) translations, metres.
+    Returns:
+        rotations (..., J, 4) float32 (only the root's changes), root (..., 3) float32.
+    """
+    turn = heading_quaternions(heading)
+    rotations = np.array(rotations, dtype=np.float32)
+    rotations[..., 0, :] = quaternion_multiply(turn, rotations[..., 0, :])
+    cos, sin = np.cos(heading), np.sin(heading)
+    x, y, z = np.moveaxis(np.asarray(root, dtype=np.float64), -1, 0)
+    root = np.stack([cos * x + sin * z + shift[..., 0], y, -sin * x + cos * z + shift[..., 1]], -1)
+    return rotations, root.astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- motions
+
+@dataclasses.dataclass(frozen=True)
+class _Frames:
+    """Every frame of a split's motions, stacked: rotations (N, J, 4), root (N, 3)."""
+    rotations: np.ndarray
+    root: np.ndarray
+    starts: np.ndarray           # (trials + 1,) first frame of each trial, then N
+
+    @staticmethod
+    def of(motions):
+        lengths = [len(m.rotations) for m in motions]
+        return _Frames(np.concatenate([m.rotations for m in motions]).astype(np.float32),
+                       np.concatenate([m.root for m in motions]).astype(np.float32),
+                       np.concatenate([[0], np.cumsum(lengths)]))
+
+    def clip_starts(self, stride):
+        """First frames of every CLIP_FRAMES window at ``stride`` inside one trial."""
+        return np.concatenate([np.arange(a, b - CLIP_FRAMES + 1, stride)
+                               for a, b in zip(self.starts[:-1], self.starts[1:])] + [[]]
+                              ).astype(np.int64)
+
+
+def cmu_motions(cmu_dir, show_progress=True):
+    """Load every CMU trial at 30 fps, split for training, validation and test.
+
+    Returns:
+        motions: {'train', 'val', 'test'}: lists of ``cmu.Motion``; 'test' is DESIGN.md's test
+            split, 'val' the training subjects in ``VALIDATION_SUBJECTS``.
+        actor_hip_height: the CMU actor's T-pose pelvis height above the floor, metres.
+    """
+    trials = list_trials(cmu_dir)
+    if not trials:
+        raise FileNotFoundError(f"no CMU trial (*.bvh.gz) under {cmu_dir}")
+    motions = {"train": [], "val": [], "test": []}
+    for trial in tqdm(trials, desc="loading CMU", unit="trial", disable=not show_progress):
+        split = ("test" if trial.split == "test" else
+                 "val" if trial.subject in VALIDATION_SUBJECTS else "train")
+        motions[split].append(load_motion(trial.path, fps=FPS))
+    return motions, float(cmu_tpose_joints(trials[0].path)[0, 1])
+
+
+def _draw_frames(total, count, rng):
+    """``count`` frame indices, without repeats until every frame has been drawn once."""
+    rounds = -(-count // total)
+    return np.concatenate([rng.permutation(total) for _ in range(rounds)])[:count]
+
+
+def _augmentation(rng, shape, max_shift):
+    return rng.uniform(0, 2 * np.pi, shape), rng.uniform(-max_shift, max_shift, shape + (2,))
+
+
+def _chunks(indices):
+    for start in range(0, len(indices), CHUNK):
+        yield indices[start:start + CHUNK]
+
+
+# ----------------------------------------------------------------------------- datasets
+
+def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift, progress=None):
+    """Static frames: random body, random frame, augmented; see the module docstring."""
+    frame = _draw_frames(len(frames.root), count, rng)
+    body = rng.integers(len(bodies), size=count).astype(np.int32)
+    heading, shift = _augmentation(rng, (count,), max_shift)
+    out = {"points": np.empty((count, points, 3), np.float32),
+           "joints": np.empty((count, NUM_JOINTS, 3), np.float32), "body": body}
+    for b, model in enumerate(bodies):
+        scale = model.hip_height / actor_hip_height
+        for chunk in _chunks(np.flatnonzero(body == b)):
+            rotations, root = augment(frames.rotations[frame[chunk]],
+                                      frames.root[frame[chunk]] * scale,
+                                      heading[chunk], shift[chunk])
+            vertices, joints = pose_body(model, rotations, root)
+            out["points"][chunk] = sample_point_clouds(vertices, model.faces, points, rng)
+            out["joints"][chunk] = joints
+            if progress is not None:
+                progress.update(len(chunk))
+    return out
+
+
+def skin_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift, progress=None):
+    """T-pose and posed surface points in correspondence; see the module docstring."""
+    frame = _draw_frames(len(frames.root), count, rng)
+    body = rng.integers(len(bodies), size=count).astype(np.int32)
+    heading, shift = _augmentation(rng, (count,), max_shift)
+    out = {name: np.empty((count, points, 3), np.float32)
+           for name in ("tpose_points", "posed_points")}
+    out.update(weights=np.empty((count, points, NUM_JOINTS), np.float16),
+               rotations=np.empty((count, NUM_JOINTS, 4), np.float32),
+               root=np.empty((count, 3), np.float32),
+               tpose_joints=np.empty((count, NUM_JOINTS, 3), np.float32),
+               joints=np.empty((count, NUM_JOINTS, 3), np.float32), body=body)
+    for b, model in enumerate(bodies):
+        scale = model.hip_height / actor_hip_height
+        for chunk in _chunks(np.flatnonzero(body == b)):
+            rotations, root = augment(frames.rotations[frame[chunk]],
+                                      frames.root[frame[chunk]] * scale,
+                                      heading[chunk], shift[chunk])
+            vertices, joints = pose_body(model, rotations, root)
+            for i, n in enumerate(chunk):
+                face, barycentric = sample_surface(model.vertices, model.faces, points, rng)
+                out["tpose_points"][n] = points_from_barycentric(model.vertices, model.faces,
+                                                                 face, barycentric)
+                out["posed_points"][n] = points_from_barycentric(vertices[i], model.faces,
+                                                                 face, barycentric)
+                corners = model.weights[model.faces[face]]                # (Q, 3, J)
+                out["weights"][n] = np.einsum("qcj,qc->qj", corners, barycentric)
+            out["rotations"][chunk], out["root"][chunk] = rotations, root
+            out["tpose_joints"][chunk], out["joints"][chunk] = model.joints, joints
+            if progress is not None:
+                progress.update(len(chunk))
+    return out
+
+
+def smrm_clips(frames, bodies, stride, actor_hip_height, rng, max_shift, progress=None):
+    """Every CLIP_FRAMES window (at ``stride``) once, each on a random body, augmented."""
+    starts = frames.clip_starts(stride)
+    count = len(starts)
+    body = rng.integers(len(bodies), size=count).astype(np.int32)
+    heading, shift = _augmentation(rng, (count,), max_shift)
+    window = starts[:, None] + np.arange(CLIP_FRAMES)                   # (N, 30)
+    scale = np.array([m.hip_height / actor_hip_height for m in bodies], np.float32)[body]
+    rotations, root = augment(frames.rotations[window],
+                              frames.root[window] * scale[:, None, None],
+                              heading[:, None], shift[:, None])
+    tpose_joints = np.stack([m.joints for m in bodies])[body]           # (N, J, 3)
+    joints, _ = forward_kinematics(rotations, root, tpose_joints[:, None])
+    if progress is not None:
+        progress.update(count)
+    return {"joints": joints, "rotations": rotations, "root": root,
+            "tpose_joints": tpose_joints, "body": body,
+            "bodies_tpose_joints": np.stack([m.joints for m in bodies])}
+
+
+def test_sequence(motion, source, target, points, actor_hip_height, rng, progress=None):
+    """One benchmark sequence: ``motion`` on ``source`` (clouds) and on ``target`` (ground
+    truth, Mixamo style); see the module docstring."""
+    rotations = np.asarray(motion.rotations, np.float32)
+    frames = len(rotations)
+    source_root = (motion.root * (source.hip_height / actor_hip_height)).astype(np.float32)
+    target_root = (motion.root * (target.hip_height / actor_hip_height)).astype(np.float32)
+    out = {"source_points": np.empty((frames, points, 3), np.float32),
+           "source_joints": np.empty((frames, NUM_JOINTS, 3), np.float32),
+           "target_points": np.empty((frames,) + target.vertices.shape, np.float32),
+           "target_joints": np.empty((frames, NUM_JOINTS, 3), np.float32)}
+    for chunk in _chunks(np.arange(frames)):
+        vertices, out["source_joints"][chunk] = pose_body(source, rotations[chunk],
+                                                          source_root[chunk])
+        out["source_points"][chunk] = sample_point_clouds(vertices, source.faces, points, rng)
+        out["target_points"][chunk], out["target_joints"][chunk] = pose_body(
+            target, rotations[chunk], target_root[chunk])
+        if progress is not None:
+            progress.update(len(chunk))
+    out.update(source_root=source_root, source_tpose_joints=source.joints, rotations=rotations,
+               target_root=target_root, target_tpose_points=target.vertices,
+               target_faces=target.faces, target_tpose_joints=target.joints,
+               target_weights=target.weights, name=np.array(motion.name),
+               category=np.array(motion.category), source_body=np.array(source.name),
+               target_body=np.array(target.name), fps=np.array(FPS))
+    return out
+
+
+# ----------------------------------------------------------------------------- build
+
+def save_npz(path, arrays):
+    """Write arrays with ``np.savez`` to a temporary name, then rename it to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    with open(temporary, "wb") as file:
+        np.savez(file, **arrays)
+    os.replace(temporary, path)
+
+
+def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=None,
+          show_progress=True):
+    """Build every dataset into ``out_dir``, deterministically from ``config.seed``.
+
+    Args:
+        motions: {'train': [...], 'val': [...], 'test': [...]} lists of motions, each with
+            ``name``, ``category``, ``rotations`` (T, J, 4) and ``root`` (T, 3) (metres, the
+            actor's pelvis, +Y up, feet on the ground at y = 0) at 30 fps.
+        actor_hip_height: the motions' actor's T-pose pelvis height above the floor, metres.
+        out_dir: output folder.
+        config: a ``BuildConfig``.
+        cache_dir: body cache folder (None: ``bodies.default_cache_dir()``).
+        show_progress: draw a tqdm progress bar.
+    Returns:
+        a summary dict: counts, file sizes (bytes), seconds; also saved as manifest.json.
+    """
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    # Each dataset has its own random stream, so changing one size leaves the others alone.
+    streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
+        ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test"))}
+    bodies = {"train": [body_from_seed(s, cache_dir)
+                        for s in sampled_body_seeds(config.bodies, "train")],
+              "val": [body_from_seed(s, cache_dir)
+                      for s in sampled_body_seeds(config.val_bodies, "val")]}
+    targets, sources = test_bodies(cache_dir)
+    frames = {split: _Frames.of(motions[split]) for split in ("train", "val")}
+    counts = {"skr_train": config.frames, "skr_val": max(1, config.frames // 10),
+              "skin_train": config.skin_samples, "skin_val": max(1, config.skin_samples // 10),
+              "smrm_train": len(frames["train"].clip_starts(config.clip_stride)),
+              "smrm_val": len(frames["val"].clip_starts(config.clip_stride)),
+              "test_frames": sum(len(m.rotations) for m in motions["test"])}
+    files = {}
+    with tqdm(total=sum(counts.values()), unit="sample", disable=not show_progress,
+              desc="building") as progress:
+        for split in ("train", "val"):
+            common = dict(frames=frames[split], bodies=bodies[split],
+                          actor_hip_height=actor_hip_height, max_shift=config.max_shift,
+                          progress=progress)
+            for kind, make, sizes in (
+                    ("skr", skr_samples, dict(count=counts[f"skr_{split}"], points=config.points)),
+                    ("skin", skin_samples, dict(count=counts[f"skin_{split}"],
+                                                points=config.skin_points)),
+                    ("smrm", smrm_clips, dict(stride=config.clip_stride))):
+                name = f"{kind}_{split}"
+                progress.set_postfix_str(name)
+                path = out_dir / f"{name}.npz"
+                save_npz(path, make(rng=streams[name], **common, **sizes))
+                files[path.name] = path.stat().st_size
+        pairs = []
+        for i, motion in enumerate(sorted(motions["test"], key=lambda m: m.name)):
+            # Cycle through the 16 (source, target) pairs: target fastest.
+            source, target = sources[(i // len(targets)) % len(sources)], targets[i % len(targets)]
+            progress.set_postfix_str(f"test {motion.name}")
+            path = out_dir / "test" / f"{motion.name}.npz"
+            save_npz(path, test_sequence(motion, source, target, config.points,
+                                         actor_hip_height, streams["test"], progress))
+            files[f"test/{path.name}"] = path.stat().st_size
+            pairs.append({"sequence": motion.name, "category": motion.category,
+                          "frames": len(motion.rotations), "source": source.name,
+                          "target": target.name})
+    summary = {
+        "config": dataclasses.asdict(config), "actor_hip_height": actor_hip_height,
+        "counts": {**counts, "test_sequences": len(pairs),
+                   "bodies_train": len(bodies["train"]), "bodies_val": len(bodies["val"]),
+                   **{f"motion_frames_{s}": int(frames[s].starts[-1]) for s in frames},
+                   **{f"trials_{s}": len(motions[s]) for s in motions}},
+        "bodies": {split: [b.name for b in bodies[split]] for split in bodies},
+        "phenotypes": {b.name: b.phenotype for b in (*bodies["train"], *bodies["val"],
+                                                     *targets, *sources)},
+        "trials": {split: sorted(m.name for m in motions[split]) for split in motions},
+        "test_pairs": pairs,
+        "files": files, "total_bytes": sum(files.values()),
+        "seconds": round(time.perf_counter() - start, 1),
+    }
+    temporary = out_dir / ".manifest.json.tmp"
+    temporary.write_text(json.dumps(summary, indent=1))
+    os.replace(temporary, out_dir / "manifest.json")
+    return summary
