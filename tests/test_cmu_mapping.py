@@ -1,0 +1,190 @@
+"""CMU skeleton -> 22 canonical joints: the mapping, the trial list, and one real file."""
+import gzip
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from minretarget.bvh import parse_bvh, read_bvh, resample, world_transforms
+from minretarget.conventions import JOINT_INDEX
+from minretarget.kinematics import forward_kinematics
+from training.data.cmu import (CMU_BONES, LEAD_IN_FRAMES, canonical_world, capture_fps,
+                               cmu_tpose_joints, list_trials, load_motion, local_quaternions,
+                               tpose_joints)
+
+CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu"
+WALK = CMU_DIR / "cgspeed" / "02" / "02_01.bvh.gz"
+
+# A small skeleton with the CMU (Daz) joint names, offsets in centimetres like the real one,
+# and an eye and a thumb that the mapping must ignore. (name, offset, children, end site)
+LEFT_ARM = ("lCollar", (3, 19, -5), [("lShldr", (9, -2, 1), [("lForeArm", (28, -2, 0), [
+    ("lHand", (22, 1, 7), [("lThumb1", (1, 0, 3), [], (2, 0, 2))], None)], None)], None)], None)
+LEFT_LEG = ("lButtock", (9, 4, 1), [("lThigh", (0, -2, -2), [("lShin", (0, -37, 1), [
+    ("lFoot", (-1, -45, -5), [], (1, -4, 12))], None)], None)], None)
+
+
+def mirror(joint):
+    name, offset, children, end = joint
+    flip = (lambda v: None if v is None else (-v[0],) + tuple(v[1:]))
+    return ("r" + name[1:], flip(offset), [mirror(c) for c in children], flip(end))
+
+
+SKELETON = ("hip", (0, 0, 0), [
+    ("abdomen", (0, 20, -1), [("chest", (0, 12, 0), [
+        ("neck", (0, 22, -2), [("head", (0, 7, 1), [("leftEye", (4, 8, 8), [], (1, 0, 0))],
+                                None)], None),
+        mirror(LEFT_ARM), LEFT_ARM], None)], None),
+    mirror(LEFT_LEG), LEFT_LEG], None)
+
+
+def hierarchy(joint, root=True):
+    name, offset, children, end = joint
+    channels = ("CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation" if root
+                else "CHANNELS 3 Zrotation Xrotation Yrotation")
+    lines = [("ROOT " if root else "JOINT ") + name, "{", "OFFSET %g %g %g" % offset, channels]
+    for child in children:
+        lines += hierarchy(child, root=False)
+    if end is not None:
+        lines += ["End Site", "{", "OFFSET %g %g %g" % end, "}"]
+    return lines + ["}"]
+
+
+def synthetic_bvh_text(frames=9, seed=0):
+    """Random poses (buttocks fixed, as in the CMU files); frame 0 is the zero pose."""
+    header = ["HIERARCHY"] + hierarchy(SKELETON)
+    names = [line.split()[1] for line in header if line.startswith(("ROOT", "JOINT"))]
+    rng = np.random.default_rng(seed)
+    values = rng.uniform(-60, 60, (frames, 3 + 3 * len(names)))
+    values[:, :3] = rng.uniform(-100, 100, (frames, 3))
+    for name in ("lButtock", "rButtock"):
+        start = 3 + 3 * names.index(name)
+        values[:, start:start + 3] = 0
+    values[0] = 0
+    lines = header + ["MOTION", f"Frames: {frames}", "Frame Time: 0.0083333"]
+    return "\n".join(lines + [" ".join(f"{v:.6f}" for v in row) for row in values]) + "\n"
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    return parse_bvh(synthetic_bvh_text(), scale=0.01)
+
+
+def mapped_bvh_positions(bvh):
+    """(T, J', 3) BVH world positions of the canonical joints that have a CMU joint, and J'."""
+    positions, _ = world_transforms(bvh)
+    mapped = [(JOINT_INDEX[name], bvh.names.index(bone)) for name, bone in CMU_BONES.items()
+              if bone is not None]
+    return positions[:, [b for _, b in mapped]], [j for j, _ in mapped]
+
+
+def fk_of_mapping(bvh):
+    positions, rotations = canonical_world(bvh)
+    joints, _ = forward_kinematics(local_quaternions(rotations), positions[:, 0],
+                                   tpose_joints(bvh))
+    return joints
+
+
+# ----------------------------------------------------------------------------- mapping
+
+def test_zero_pose_maps_to_identity(synthetic):
+    zero = replace(synthetic, values=synthetic.values[:1])
+    q = local_quaternions(canonical_world(zero)[1])
+    np.testing.assert_allclose(q, np.tile([1, 0, 0, 0], (1, 22, 1)), atol=1e-7)
+
+
+def test_fk_of_mapped_rotations_reproduces_bvh_positions(synthetic):
+    joints = fk_of_mapping(synthetic)
+    expected, mapped = mapped_bvh_positions(synthetic)
+    np.testing.assert_allclose(joints[:, mapped], expected, atol=1e-5)
+    # The joints CMU lacks ride rigidly: the ball of the foot is the foot's End Site.
+    positions, rotations = world_transforms(synthetic)
+    foot = synthetic.names.index("lFoot")
+    ball = positions[:, foot] + rotations[:, foot] @ synthetic.end_sites[foot]
+    np.testing.assert_allclose(joints[:, JOINT_INDEX["left_foot"]], ball, atol=1e-5)
+
+
+def test_missing_joints_get_identity_local_rotations(synthetic):
+    q = local_quaternions(canonical_world(synthetic)[1])
+    for name in ("spine3", "left_foot", "right_foot"):
+        np.testing.assert_allclose(q[:, JOINT_INDEX[name]], np.tile([1, 0, 0, 0], (9, 1)),
+                                   atol=1e-6)
+    assert (q[..., 0] >= 0).all()
+
+
+def check_tpose_axes(tpose):
+    """Canonical T-pose: +Y up, facing +Z (toes ahead of ankles), left hand toward +X."""
+    j = JOINT_INDEX
+    assert tpose[j["left_wrist"], 0] > 0.4 and tpose[j["right_wrist"], 0] < -0.4
+    assert tpose[j["left_hip"], 0] > 0 > tpose[j["right_hip"], 0]
+    for side in ("left", "right"):
+        assert tpose[j[f"{side}_foot"], 2] > tpose[j[f"{side}_ankle"], 2] + 0.05
+    assert tpose[j["head"], 1] > tpose[j["pelvis"], 1] > tpose[j["left_knee"], 1] > 0
+    assert abs(min(tpose[j["left_foot"], 1], tpose[j["right_foot"], 1]) - 0.025) < 1e-6
+
+
+def test_tpose_axes_and_floor(synthetic):
+    check_tpose_axes(tpose_joints(synthetic))
+
+
+def test_load_motion_drops_the_lead_in_and_resamples(tmp_path):
+    path = tmp_path / "mine.bvh"
+    path.write_text(synthetic_bvh_text(frames=LEAD_IN_FRAMES + 9))
+    bvh = parse_bvh(path.read_text(), scale=0.01)
+    motion = load_motion(path)                   # not in the collection: the header's 120 fps
+    assert motion.name == "mine" and motion.fps == 30 and motion.source_fps == 120
+    assert motion.rotations.shape == (3, 22, 4) and motion.rotations.dtype == np.float32
+    assert motion.root.shape == (3, 3) and motion.root.dtype == np.float32
+    kept = replace(bvh, values=bvh.values[LEAD_IN_FRAMES::4])          # 3 of the 9 frames
+    positions, rotations = canonical_world(kept)
+    np.testing.assert_allclose(motion.root, positions[:, 0], atol=1e-6)
+    np.testing.assert_allclose(motion.rotations, local_quaternions(rotations), atol=1e-6)
+    assert load_motion(path, source_fps=60).rotations.shape[0] == 5   # every other frame
+
+
+# ----------------------------------------------------------------------------- the collection
+
+def test_list_trials_names_categories_and_splits(tmp_path):
+    for rel in ("cgspeed/08/08_01.bvh.gz", "cgspeed/02/02_03.bvh.gz", "cgspeed/05/05_02.bvh.gz",
+                "cgspeed/13/13_07.bvh.gz", "aclstm/indian/04.bvh.gz", "aclstm/salsa/01.bvh.gz"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(gzip.compress(b""))
+    (tmp_path / "cgspeed" / "CMU-INDEX.md").write_text(
+        "Subject #2 (various)\n\n02_03  run/jog\n\n05_02  dance - expressive arms\n\n"
+        "08_01  walk\r\n\n13_07  unscrew bottlecap, drink soda\n")
+    trials = {t.name: t for t in list_trials(tmp_path)}
+    assert sorted(trials) == ["02_03", "05_02", "08_01", "13_07", "indian_04", "salsa_01"]
+    assert {n: t.category for n, t in trials.items()} == {
+        "02_03": "run", "05_02": "dance", "08_01": "walk", "13_07": "everyday",
+        "indian_04": "indian", "salsa_01": "salsa"}
+    assert {n for n, t in trials.items() if t.split == "test"} == {"08_01", "indian_04"}
+    assert trials["08_01"].subject == "08" and trials["salsa_01"].subject == "salsa"
+    assert capture_fps(trials["salsa_01"].path) == 60
+    assert capture_fps(trials["indian_04"].path) == capture_fps(trials["02_03"].path) == 120
+    assert capture_fps(tmp_path / "elsewhere.bvh") is None
+
+
+# ----------------------------------------------------------------------------- real data
+
+needs_cmu = pytest.mark.skipif(not WALK.exists(), reason=f"CMU data not found at {CMU_DIR}")
+
+
+@needs_cmu
+def test_real_walk_maps_exactly_and_walks_forward():
+    motion = load_motion(WALK)
+    assert motion.category == "walk" and motion.source_fps == 120
+    bvh = read_bvh(WALK, scale=0.01)
+    check_tpose_axes(tpose_joints(bvh))
+    np.testing.assert_array_equal(tpose_joints(bvh), cmu_tpose_joints(WALK))
+    bvh = resample(replace(bvh, values=bvh.values[LEAD_IN_FRAMES:]), fps=30, source_fps=120)
+    joints, rotations = forward_kinematics(motion.rotations, motion.root, cmu_tpose_joints(WALK))
+    expected, mapped = mapped_bvh_positions(bvh)
+    assert np.abs(joints[:, mapped] - expected).max() < 1e-3                 # metres
+    # The actor walks the way the pelvis faces, feet near the floor.
+    velocity = np.diff(motion.root[:, [0, 2]], axis=0)
+    facing = rotations[:-1, 0][:, [0, 2], 2]                     # pelvis +Z, horizontal part
+    cosine = np.sum(velocity * facing, axis=1) / np.linalg.norm(velocity, axis=1) \
+        / np.linalg.norm(facing, axis=1)
+    assert np.median(cosine) > 0.9
+    feet = joints[:, [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]], 1]
+    assert feet.min(axis=1).max() < 0.15 and feet.min() > -0.02

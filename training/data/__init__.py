@@ -1,0 +1,1 @@
+"""Training data: motion capture loading and dataset building."""

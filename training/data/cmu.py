@@ -1,0 +1,268 @@
+"""CMU motion capture (the cgspeed "Daz-friendly" BVH files) -> the 22-joint canonical skeleton.
+
+Data layout (see ../shared/data/cmu/README.md)::
+
+    <cmu_dir>/cgspeed/NN/NN_MM.bvh.gz      subjects 01-14, descriptions in cgspeed/CMU-INDEX.md
+    <cmu_dir>/aclstm/<style>/MM.bvh.gz     style in salsa, martial, indian
+
+All files share one 43-joint skeleton (hip, abdomen, chest, neck, head, l/rCollar, l/rShldr,
+l/rForeArm, l/rHand, l/rButtock, l/rThigh, l/rShin, l/rFoot, plus eyes and fingers, ignored).
+
+Mapping (DESIGN.md, "Motions")
+    Each canonical joint j takes the world orientation of one BVH joint, relative to the BVH
+    zero pose: ``G[j] = G_bvh[bone](t) @ G_bvh[bone](zero pose)^-1``. In BVH the zero pose has
+    every world rotation equal to the identity, so ``G[j] = G_bvh[bone](t)``. The local
+    rotation is then ``R[j] = G[parent]^T @ G[j]``; FK of R on ``tpose_joints`` reproduces the
+    BVH positions of the mapped joints (the buttock joints between hip and thigh carry zero
+    rotation in every file, so dropping them loses nothing).
+    Joints CMU lacks take the identity local rotation, i.e. move rigidly with their parent:
+      - spine3: CMU's chest is one rigid segment from the chest joint up to the neck and
+        collars; chest's rotation goes on spine2 and spine3 is a point on that segment
+        (halfway from chest to neck), so the target's spine_02 + spine_03 bend like that one
+        CMU segment and FK on the CMU skeleton stays exact.
+      - left_foot / right_foot (ball of the foot): the l/rFoot End Site, 12 cm in front of and
+        4 cm below the ankle; CMU has no toe rotation, so the toes stay rigid with the ankle.
+Axes
+    The CMU zero pose already faces +Z (toes at +Z) with the left hand at +X, +Y up (checked
+    in tests/test_cmu_mapping.py on the file), so no axis change is applied.
+Units
+    The files are in centimetres (standing hip height about 85): scaled by 0.01 to metres.
+Frames
+    The first 8 frames of every file are a lead-in added by the conversion, not captured
+    motion: frame 0 is a reference stance (root rotation exactly zero, joint angles near zero)
+    and frames 1-7 swing from it into the capture (median over the files of the mean joint
+    displacement per frame, relative to the rest of the file: 41, 23, 20, 14, 5.7, 1.1, 3.3,
+    2.2, then 0.7 as later on). They are dropped (``LEAD_IN_FRAMES``).
+"""
+import functools
+import re
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from minretarget.bvh import read_bvh, resample, world_transforms
+from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS
+from minretarget.kinematics import matrix_to_quaternion
+
+CENTIMETRES = 0.01
+
+# Canonical joint -> the BVH joint whose world rotation (and position) it takes; None: the
+# joint moves rigidly with its canonical parent (see the module docstring).
+CMU_BONES = {
+    "pelvis": "hip", "left_hip": "lThigh", "right_hip": "rThigh", "spine1": "abdomen",
+    "left_knee": "lShin", "right_knee": "rShin", "spine2": "chest",
+    "left_ankle": "lFoot", "right_ankle": "rFoot", "spine3": None,
+    "left_foot": None, "right_foot": None, "neck": "neck",
+    "left_collar": "lCollar", "right_collar": "rCollar", "head": "head",
+    "left_shoulder": "lShldr", "right_shoulder": "rShldr",
+    "left_elbow": "lForeArm", "right_elbow": "rForeArm",
+    "left_wrist": "lHand", "right_wrist": "rHand",
+}
+
+# True capture rate of each collection. Every header says Frame Time 0.0083333 (120 fps).
+# - aclstm/framerates.txt: salsa 60, martial 120, indian 120.
+# - cgspeed/CGSPEED.md: the conversion "preserves the 120fps of the original CMU dataset"; it
+#   names no 60 fps trial. The trials present (subjects 01-14) check out as 120 fps
+#   physically: read at 120 fps, the trunk's peak downward acceleration in the runs (09_*)
+#   and jumps (13_11, 13_39-42) is 11-17 m/s^2, about g as in a flight phase; read at 60 fps
+#   it would be 3-4 m/s^2, too little for leaving the ground.
+SOURCE_FPS = {"cgspeed": 120, "salsa": 60, "martial": 120, "indian": 120}
+
+# Test split of DESIGN.md ("Accuracy protocol"): CMU subjects and aclstm styles never trained on.
+TEST_SUBJECTS = frozenset({"08", "11", "12", "14", "indian"})
+
+LEAD_IN_FRAMES = 8       # conversion artefacts at the start of every file (module docstring)
+
+# Ball-of-foot (foot End Site) height above the floor with the foot flat: the median, over the
+# files, of the 2nd percentile of the lower foot End Site's height is 0.027 m.
+_BALL_HEIGHT = 0.025
+
+# First matching rule gives a cgspeed trial's category, from its CMU-INDEX.md description.
+_CATEGORY_RULES = (
+    ("dance", ("dance",)), ("basketball", ("basketball",)), ("soccer", ("soccer",)),
+    ("fight", ("punch", "boxing", "swordplay")), ("exercise", ("jumping jacks",)),
+    ("climb", ("climb",)), ("sit", ("sit ",)), ("run", ("run",)), ("walk", ("walk",)),
+    ("jump", ("jump",)),
+)
+
+
+@dataclass(frozen=True, eq=False)
+class Motion:
+    """One CMU trial on the canonical skeleton.
+
+    Attributes:
+        name: trial name, e.g. "08_01" (cgspeed) or "salsa_01" (aclstm).
+        rotations: (T, 22, 4) float32 local joint quaternions (w, x, y, z), w >= 0.
+        root: (T, 3) float32 world position of the pelvis (CMU hip joint), metres, +Y up,
+            canonical axes; the capture floor is near y = 0.
+        fps: frame rate of ``rotations`` and ``root``.
+        category: e.g. "walk", "run", "dance", "salsa", "martial", "indian".
+        source_fps: the capture frame rate that was resampled from.
+    """
+    name: str
+    rotations: np.ndarray
+    root: np.ndarray
+    fps: int
+    category: str
+    source_fps: float
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One file of the collection: ``split`` is "test" or "train" (DESIGN.md)."""
+    name: str
+    path: Path
+    subject: str
+    category: str
+    split: str
+
+
+# ----------------------------------------------------------------------------- the collection
+
+def list_trials(cmu_dir):
+    """Every ``.bvh.gz`` trial present under ``cmu_dir``, sorted by path.
+
+    Returns:
+        list of Trial; subject is "NN" for cgspeed/NN/NN_MM and the style for aclstm/<style>.
+    """
+    cmu_dir = Path(cmu_dir)
+    paths = sorted(cmu_dir.glob("cgspeed/*/*.bvh.gz")) + sorted(cmu_dir.glob("aclstm/*/*.bvh.gz"))
+    trials = []
+    for path in paths:
+        subject = path.parent.name
+        trials.append(Trial(name=trial_name(path), path=path, subject=subject,
+                            category=trial_category(path),
+                            split="test" if subject in TEST_SUBJECTS else "train"))
+    return trials
+
+
+def _collection(path):
+    """"cgspeed" or the aclstm style of a trial path, from its folders; None if neither."""
+    path = Path(path)
+    if path.parent.parent.name == "cgspeed":
+        return "cgspeed"
+    if path.parent.parent.name == "aclstm":
+        return path.parent.name
+    return None
+
+
+def trial_name(path):
+    """"NN_MM" for cgspeed files, "<style>_MM" for aclstm files, else the bare file name."""
+    path = Path(path)
+    stem = path.name.split(".")[0]
+    collection = _collection(path)
+    return stem if collection in (None, "cgspeed") else f"{collection}_{stem}"
+
+
+def capture_fps(path):
+    """The true capture frame rate of a trial (``SOURCE_FPS``), or None if its folder layout
+    is not the collection's."""
+    return SOURCE_FPS.get(_collection(path))
+
+
+def trial_category(path):
+    """Motion category: the aclstm style, or from the CMU-INDEX.md description for cgspeed
+    (``_CATEGORY_RULES``, "everyday" when none matches), else the file's folder name."""
+    path = Path(path)
+    collection = _collection(path)
+    if collection != "cgspeed":
+        return collection or path.parent.name
+    description = _index(path.parent.parent / "CMU-INDEX.md").get(trial_name(path), "")
+    for category, words in _CATEGORY_RULES:
+        if any(word in description for word in words):
+            return category
+    return "everyday"
+
+
+@functools.lru_cache(maxsize=4)
+def _index(index_path):
+    """{"NN_MM": lower-case description} from a CMU-INDEX.md; empty if the file is absent."""
+    try:
+        text = Path(index_path).read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return {}
+    return {m.group(1): m.group(2).lower()
+            for m in re.finditer(r"^(\d+_\d+)\s+(.+?)\s*$", text, flags=re.MULTILINE)}
+
+
+# ----------------------------------------------------------------------------- the mapping
+
+def load_motion(path, fps=FPS, source_fps=None):
+    """Load one CMU trial as local rotations and a root path on the canonical skeleton.
+
+    Args:
+        path: a trial ``.bvh`` / ``.bvh.gz`` file on the CMU skeleton.
+        fps: output frame rate.
+        source_fps: true capture rate; None looks it up (``capture_fps``), falling back to
+            the header for a file outside the collection's folders.
+    Returns:
+        Motion (lead-in frames dropped, resampled to ``fps``).
+    """
+    bvh = read_bvh(path, scale=CENTIMETRES)
+    if source_fps is None:
+        source_fps = capture_fps(path) or bvh.fps
+    bvh = resample(replace(bvh, values=bvh.values[LEAD_IN_FRAMES:]), fps=fps,
+                   source_fps=source_fps)
+    positions, rotations = canonical_world(bvh)
+    return Motion(name=trial_name(path), rotations=local_quaternions(rotations),
+                  root=positions[:, 0].astype(np.float32), fps=int(fps),
+                  category=trial_category(path), source_fps=float(source_fps))
+
+
+def canonical_world(bvh):
+    """World positions and rotations of the 22 canonical joints on the CMU skeleton.
+
+    Args:
+        bvh: BVHMotion on the CMU skeleton, in metres.
+    Returns:
+        positions: (T, J, 3) float64 metres: each mapped joint at its BVH joint; spine3 and
+            left/right_foot carried rigidly by their parent (module docstring).
+        rotations: (T, J, 3, 3) float64 world rotations relative to the zero pose.
+    """
+    bvh_positions, bvh_rotations = world_transforms(bvh)
+    index = {name: i for i, name in enumerate(bvh.names)}
+    rigid_offsets = {                           # zero-pose offset from the canonical parent
+        "spine3": 0.5 * bvh.offsets[index["neck"]],
+        "left_foot": bvh.end_sites[index["lFoot"]],
+        "right_foot": bvh.end_sites[index["rFoot"]],
+    }
+    positions = np.empty((bvh.num_frames, NUM_JOINTS, 3))
+    rotations = np.empty((bvh.num_frames, NUM_JOINTS, 3, 3))
+    for j, name in enumerate(JOINT_NAMES):
+        bone = CMU_BONES[name]
+        if bone is not None:
+            positions[:, j] = bvh_positions[:, index[bone]]
+            rotations[:, j] = bvh_rotations[:, index[bone]]
+        else:
+            parent = PARENTS[j]
+            rotations[:, j] = rotations[:, parent]
+            positions[:, j] = positions[:, parent] + rotations[:, parent] @ rigid_offsets[name]
+    return positions, rotations
+
+
+def local_quaternions(rotations):
+    """(T, J, 3, 3) world joint rotations -> (T, J, 4) float32 local quaternions (w, x, y, z),
+    w >= 0: ``R[j] = G[parent]^T @ G[j]``, the root keeping its world rotation."""
+    parents = np.array((0,) + PARENTS[1:])
+    local = np.swapaxes(rotations[:, parents], -1, -2) @ rotations           # (T, J, 3, 3)
+    local[:, 0] = rotations[:, 0]
+    return matrix_to_quaternion(local)
+
+
+def tpose_joints(bvh):
+    """(J, 3) float32 canonical T-pose joints of a CMU skeleton, metres: its zero pose with the
+    pelvis above the origin and the feet flat on the floor y = 0."""
+    zero_pose = replace(bvh, values=np.zeros((1, bvh.values.shape[1])))
+    joints = canonical_world(zero_pose)[0][0]                                # (J, 3)
+    joints -= joints[0]
+    joints[:, 1] += _BALL_HEIGHT - joints[[JOINT_INDEX["left_foot"],
+                                           JOINT_INDEX["right_foot"]], 1].min()
+    return joints.astype(np.float32)
+
+
+def cmu_tpose_joints(path):
+    """(J, 3) float32 T-pose joints of the CMU actor in metres, read from any trial file (they
+    share one skeleton). ``[0, 1]`` (0.855) is the hip height used to scale root paths; note
+    that CMU's pelvis (its hip joint) sits 2.6 cm below its thigh joints."""
+    return tpose_joints(read_bvh(path, scale=CENTIMETRES))
