@@ -9,7 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .conventions import MIN_POINTS
+from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import regress_joints
@@ -45,12 +45,16 @@ class Retargeter:
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path))
 
-    def set_target(self, points, faces=None):
+    def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
 
         Args:
             points: (V, 3) target points or mesh vertices in T-pose, metres, +Y up, facing +Z.
             faces: optional (F, 3) integer triangles, kept with the target for writers.
+            tpose_joints: optional (J, 3) the target's own T-pose skeleton, metres, to use
+                instead of SKR's (a rigged character).
+            skin_weights: optional (V, J) its own skinning weights, to use instead of SKIN's;
+                rows must be >= 0 and sum to 1.
         """
         points = as_point_cloud(points, "target points", MIN_POINTS)
         if faces is not None:
@@ -62,9 +66,15 @@ class Retargeter:
             if faces.size and (faces.min() < 0 or faces.max() >= len(points)):
                 raise ValueError(f"faces index vertices outside [0, {len(points)})")
             faces = faces.astype(np.int64)
-        tpose_joints = regress_joints(points, self.weights.skr)
-        weights = skinning_weights(points, tpose_joints, self.weights.skin)
-        self.target = Target(points, faces, tpose_joints, weights)
+        if tpose_joints is None:
+            tpose_joints = regress_joints(points, self.weights.skr)
+        tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
+        if skin_weights is None:
+            skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
+        skin_weights = as_float32_array(skin_weights, "skin_weights", (len(points), NUM_JOINTS))
+        if (skin_weights < 0).any() or np.abs(skin_weights.sum(axis=1) - 1).max() > 1e-3:
+            raise ValueError("skin_weights must be >= 0 and each row must sum to 1")
+        self.target = Target(points, faces, tpose_joints, skin_weights)
         self.reset()
 
     def reset(self):

@@ -85,3 +85,23 @@ def test_bad_input_names_the_problem(tiny_weights, retargeter, tiny_stream):
         list(retargeter.run([tiny_stream[1][0], tiny_stream[1][1], np.zeros((3, 3))]))
     with pytest.raises(ValueError, match="dtype"):
         retargeter.step(np.array([["a", "b", "c"]] * 100))
+
+
+def test_a_given_rig_replaces_skr_and_skin(tiny_weights, tiny_stream):
+    target, sources, _ = tiny_stream
+    rng = np.random.default_rng(1)
+    joints = rng.normal(size=(22, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(22), size=len(target)).astype(np.float32)
+    retargeter = Retargeter(tiny_weights)
+    retargeter.set_target(target, tpose_joints=joints, skin_weights=weights)
+    np.testing.assert_array_equal(retargeter.target.tpose_joints, joints)
+    np.testing.assert_array_equal(retargeter.target.skin_weights, weights)
+    # SKIN runs on the given skeleton when only the skeleton is given.
+    retargeter.set_target(target, tpose_joints=joints)
+    own = Retargeter(tiny_weights)
+    own.set_target(target)
+    assert np.abs(retargeter.target.skin_weights - own.target.skin_weights).max() > 1e-4
+    with pytest.raises(ValueError, match="sum to 1"):
+        retargeter.set_target(target, skin_weights=weights * 2)
+    with pytest.raises(ValueError, match="skin_weights must have shape"):
+        retargeter.set_target(target, skin_weights=weights[:10])
