@@ -29,6 +29,11 @@ field.
     truth as Mixamo makes it: the same local rotations on the target, the root translation
     scaled by the ratio of hip heights (target / source).
     name, category, source_body, target_body: str; fps: int.
+    Everything stays float32, target_points included (about 2.7 of the default build's 3.7 GB):
+    float16 would round points a few metres from the origin by 2-4 mm, as much as the MEDL
+    metric measures (about 1 mm).
+    Source and target of the i-th trial (sorted by name): source ``i // 4 % 4``, target
+    ``i % 4`` of the fixed test bodies, so 16 trials cover every pair.
 
 Training samples: a random training body plays a random motion frame or clip; the motion's
 root translation is scaled by (body hip height / actor hip height) so the feet stay on the
@@ -60,7 +65,11 @@ CHUNK = 256
 
 @dataclasses.dataclass(frozen=True)
 class BuildConfig:
-    """Sizes of a build. Validation gets a tenth of each training count (bodies: an eighth)."""
+    """Sizes of a build. Validation gets a tenth of each training count (bodies: an eighth).
+
+    The defaults take about 11 minutes on a 2-core machine and write 3.7 GB (0.7 GB of
+    training and validation data, 3.0 GB of test sequences).
+    """
     seed: int = 0
     bodies: int = 120            # training bodies (the paper: 120)
     frames: int = 20_000         # SKR training frames (the paper: ~65,000)
