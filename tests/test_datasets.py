@@ -125,7 +125,7 @@ def test_smrm_clips_are_fk_of_their_rotations(built):
 
 def test_test_sequences_are_mixamo_ground_truth(built, cache):
     out, summary = built
-    targets, sources = bodies.test_bodies(cache)
+    targets, sources = bodies.benchmark_bodies(cache)
     for i, name in enumerate(["test_a", "test_b"]):                # sorted by name, cycled
         seq = _load(out / "test" / f"{name}.npz")
         source, target = sources[0], targets[i]

@@ -338,7 +338,7 @@ def body_from_seed(seed, cache_dir=None):
     return get_body(phenotype_from_seed(seed), f"seed_{seed}", cache_dir)
 
 
-def test_bodies(cache_dir=None):
+def benchmark_bodies(cache_dir=None):
     """The fixed test bodies: (targets, sources), each a list of 4 ``Body``."""
     targets = [get_body(p, name, cache_dir) for name, p in TEST_TARGET_PHENOTYPES.items()]
     sources = [get_body(p, name, cache_dir) for name, p in TEST_SOURCE_PHENOTYPES.items()]

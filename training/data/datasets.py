@@ -52,7 +52,7 @@ from tqdm import tqdm
 from minretarget.conventions import FPS, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
-from .bodies import body_from_seed, pose_body, sampled_body_seeds, test_bodies
+from .bodies import body_from_seed, pose_body, sampled_body_seeds, benchmark_bodies
 from .cmu import cmu_tpose_joints, list_trials, load_motion
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
@@ -247,7 +247,7 @@ def smrm_clips(frames, bodies, stride, actor_hip_height, rng, max_shift, progres
             "bodies_tpose_joints": np.stack([m.joints for m in bodies])}
 
 
-def test_sequence(motion, source, target, points, actor_hip_height, rng, progress=None):
+def benchmark_sequence(motion, source, target, points, actor_hip_height, rng, progress=None):
     """One benchmark sequence: ``motion`` on ``source`` (clouds) and on ``target`` (ground
     truth, Mixamo style); see the module docstring."""
     rotations = np.asarray(motion.rotations, np.float32)
@@ -312,7 +312,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                         for s in sampled_body_seeds(config.bodies, "train")],
               "val": [body_from_seed(s, cache_dir)
                       for s in sampled_body_seeds(config.val_bodies, "val")]}
-    targets, sources = test_bodies(cache_dir)
+    targets, sources = benchmark_bodies(cache_dir)
     frames = {split: _Frames.of(motions[split]) for split in ("train", "val")}
     counts = {"skr_train": config.frames, "skr_val": max(1, config.frames // 10),
               "skin_train": config.skin_samples, "skin_val": max(1, config.skin_samples // 10),
@@ -342,7 +342,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
             source, target = sources[(i // len(targets)) % len(sources)], targets[i % len(targets)]
             progress.set_postfix_str(f"test {motion.name}")
             path = out_dir / "test" / f"{motion.name}.npz"
-            save_npz(path, test_sequence(motion, source, target, config.points,
+            save_npz(path, benchmark_sequence(motion, source, target, config.points,
                                          actor_hip_height, streams["test"], progress))
             files[f"test/{path.name}"] = path.stat().st_size
             pairs.append({"sequence": motion.name, "category": motion.category,

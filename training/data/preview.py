@@ -8,7 +8,7 @@ import numpy as np
 
 from minretarget.conventions import JOINT_NAMES, PARENTS
 
-from .bodies import body_from_seed, get_body, pose_body, test_bodies
+from .bodies import body_from_seed, get_body, pose_body, benchmark_bodies
 
 # Bodies to look at: a child and a heavy body among them.
 PREVIEW_PHENOTYPES = {
@@ -21,7 +21,7 @@ PREVIEW_PHENOTYPES = {
 
 def preview_bodies(cache_dir=None):
     """[(label, Body)]: the preview phenotypes, two test targets and one sampled body."""
-    targets, _ = test_bodies(cache_dir)
+    targets, _ = benchmark_bodies(cache_dir)
     bodies = [(label, get_body(p, label, cache_dir)) for label, p in PREVIEW_PHENOTYPES.items()]
     sampled = body_from_seed(0, cache_dir)
     return bodies + [(t.name, t) for t in (targets[0], targets[3])] + [(sampled.name, sampled)]
