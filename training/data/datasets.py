@@ -52,7 +52,7 @@ from tqdm import tqdm
 from minretarget.conventions import FPS, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
-from .bodies import body_from_seed, pose_body, sampled_body_seeds, benchmark_bodies
+from .bodies import benchmark_bodies, body_from_seed, pose_body, sampled_body_seeds
 from .cmu import cmu_tpose_joints, list_trials, load_motion
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 

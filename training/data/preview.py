@@ -8,7 +8,7 @@ import numpy as np
 
 from minretarget.conventions import JOINT_NAMES, PARENTS
 
-from .bodies import body_from_seed, get_body, pose_body, benchmark_bodies
+from .bodies import benchmark_bodies, body_from_seed, get_body, pose_body
 
 # Bodies to look at: a child and a heavy body among them.
 PREVIEW_PHENOTYPES = {
