@@ -106,7 +106,8 @@ def test_fresh_sample_and_order_every_frame():
 def test_single_and_batched_shapes():
     rng = np.random.default_rng(5)
     assert sample_point_clouds(VERTICES, FACES, 10, rng).shape == (10, 3)
-    assert sample_point_clouds(np.stack([[VERTICES] * 3] * 2), FACES, 10, rng).shape == (2, 3, 10, 3)
+    batch = np.stack([[VERTICES] * 3] * 2)                          # (2, 3, V, 3)
+    assert sample_point_clouds(batch, FACES, 10, rng).shape == (2, 3, 10, 3)
 
 
 def test_bad_faces_raise():

@@ -128,9 +128,9 @@ def linear_blend_skinning(points, weights, transforms):
     weights = as_float32_array(weights, "weights", (points.shape[0], None))
     transforms = as_float32_array(transforms, "transforms", (..., weights.shape[1], 3, 4))
     batch = transforms.shape[:-3]
-    flat = transforms.reshape(batch + (transforms.shape[-3], 12))     # (..., J, 3, 4) -> (..., J, 12)
-    blended = np.matmul(weights, flat)                                 # (..., V, 12)
-    blended = blended.reshape(blended.shape[:-1] + (3, 4))             # (..., V, 12) -> (..., V, 3, 4)
+    flat = transforms.reshape(batch + (transforms.shape[-3], 12))  # (..., J, 3, 4) -> (..., J, 12)
+    blended = np.matmul(weights, flat)                              # (..., V, 12)
+    blended = blended.reshape(blended.shape[:-1] + (3, 4))          # -> (..., V, 3, 4)
     posed = np.einsum("...vab,vb->...va", blended[..., :3], points) + blended[..., 3]
     return posed.astype(np.float32)
 
@@ -325,7 +325,8 @@ def get_body(phenotype, name, cache_dir=None):
     import anny
     key = json.dumps({"phenotype": {k: round(float(v), 12) for k, v in sorted(phenotype.items())},
                       "anny": anny.__version__, "format": BODY_FORMAT_VERSION}, sort_keys=True)
-    path = Path(cache_dir or default_cache_dir()) / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.npz"
+    digest = hashlib.sha256(key.encode()).hexdigest()[:24]
+    path = Path(cache_dir or default_cache_dir()) / f"{digest}.npz"
     if path.exists():
         return dataclasses.replace(load_body(path), name=name)
     body = build_body(phenotype, name)

@@ -77,7 +77,7 @@ class BuildConfig:
     skin_samples: int = 2_000    # SKIN training samples
     skin_points: int = 1024      # Q, surface points per SKIN sample
     clip_stride: int = 10        # frames between the starts of consecutive SMRM clips
-    max_shift: float = 1.0       # horizontal translation augmentation, uniform in +-max_shift, metres
+    max_shift: float = 1.0       # horizontal shift augmentation: uniform in +-max_shift, metres
 
     @property
     def val_bodies(self):
