@@ -1,0 +1,184 @@
+"""Accuracy of the runtime on the test benchmark (DESIGN.md, "Accuracy protocol").
+
+    python benchmarks/accuracy.py [--quick] [--weights FILE] [--data DIR] [--cmu DIR]
+                                  [--json OUT.json] [--markdown OUT.md]
+
+Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
+retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
+    model                the weights given (default: the shipped weights)
+    analytic             SKR source bones, each target bone rotated onto its source bone
+                         (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
+    oracle source        ground-truth source joints instead of SKR
+    oracle target        ground-truth target T-pose joints and skinning weights instead of
+                         SKR + SKIN
+    oracle both          both of the above
+    paper                the paper's Table 4, reported on its own SMPL test set (not this one)
+Every row but ``paper`` is averaged over frames. If DIR/test is absent, the benchmark data is
+built first (python -m training.data build). --quick: a fixed subset (the first 150 frames of
+the first two sequences of each category), well under 3 minutes.
+"""
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from minretarget.analytic import analytic_rotations
+from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
+from minretarget.metrics import METRIC_NAMES, evaluate
+from minretarget.retargeter import Retargeter
+from minretarget.skin import linear_blend_skinning
+from minretarget.weights import load_weights
+
+PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
+         "PA-MPVD": 0.058, "MEDL": 0.001}
+ROWS = ("model", "analytic", "oracle source", "oracle target", "oracle both")
+QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
+
+
+def load_sequence(path, frames=None):
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key][:frames] if data[key].ndim and key in (
+            "source_points", "source_joints", "target_points", "target_joints", "rotations",
+            "source_root", "target_root") else data[key] for key in data.files}
+
+
+def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
+    """(T, J, 4), (T, 3) on a rig -> joints (T, J, 3), vertices (T, V, 3)."""
+    joints, global_rotations = forward_kinematics(rotations, root, tpose_joints)
+    transforms = skinning_transforms(joints, global_rotations, tpose_joints)
+    vertices = np.stack([linear_blend_skinning(points, skin_weights, t) for t in transforms])
+    return joints, vertices
+
+
+def stream(retargeter, source_joints):
+    """Run SMRM, FK and LBS online over known source joints -> joints, vertices (T, ...)."""
+    retargeter.reset()
+    frames = [retargeter.step_skeleton(joints) for joints in source_joints]
+    return np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
+
+
+def run_sequence(weights, sequence):
+    """Every row's (joints, vertices) for one test sequence, and the seconds SKR+SMRM took."""
+    learned, oracle_rig = Retargeter(weights), Retargeter(weights)
+    points = sequence["target_tpose_points"]
+    learned.set_target(points)
+    oracle_rig.set_target(points, tpose_joints=sequence["target_tpose_joints"],
+                          skin_weights=sequence["target_weights"])
+    start = time.perf_counter()
+    frames = list(learned.run(sequence["source_points"]))
+    seconds = time.perf_counter() - start
+    model = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
+    skr_joints = np.stack([f.source_joints for f in frames])
+
+    # Analytic: the same source skeletons and target rig, rotations from bone alignment, and
+    # the root scaled like SMRM's (running mean of the source's leg length).
+    target = learned.target
+    legs = np.cumsum(leg_length(skr_joints)) / np.arange(1, len(skr_joints) + 1)
+    root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
+    analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
+                             target.tpose_joints, target.points, target.skin_weights)
+    rows = {"model": model, "analytic": analytic,
+            "oracle source": stream(learned, sequence["source_joints"]),
+            "oracle target": stream(oracle_rig, skr_joints),
+            "oracle both": stream(oracle_rig, sequence["source_joints"])}
+    return rows, seconds
+
+
+def sequence_metrics(rows, sequence):
+    truth_joints, truth_points = sequence["target_joints"], sequence["target_points"]
+    return {name: evaluate(joints, truth_joints, vertices, truth_points,
+                           rest_points=sequence["target_tpose_points"])
+            for name, (joints, vertices) in rows.items()}
+
+
+def frame_weighted(results, keys=None):
+    """Mean of per-sequence metrics weighted by frames, per row."""
+    chosen = [r for r in results if keys is None or keys(r)]
+    total = sum(r["frames"] for r in chosen)
+    return {row: {m: sum(r["metrics"][row][m] * r["frames"] for r in chosen) / total
+                  for m in METRIC_NAMES} for row in ROWS}
+
+
+def markdown_table(rows, title):
+    lines = [f"**{title}**", "", "| row | " + " | ".join(METRIC_NAMES) + " |",
+             "|---|" + "---|" * len(METRIC_NAMES)]
+    for name, metrics in rows.items():
+        lines.append(f"| {name} | " + " | ".join(f"{metrics[m]:.4f}" for m in METRIC_NAMES)
+                     + " |")
+    return "\n".join(lines)
+
+
+def select_sequences(paths, quick):
+    if not quick:
+        return paths, None
+    chosen, per_category = [], {}
+    for path in sorted(paths):
+        with np.load(path, allow_pickle=False) as data:
+            category = str(data["category"])
+        if per_category.get(category, 0) < QUICK_PER_CATEGORY:
+            per_category[category] = per_category.get(category, 0) + 1
+            chosen.append(path)
+    return chosen, QUICK_FRAMES
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a fixed subset, under 3 minutes")
+    parser.add_argument("--weights", help="weights file (default: the shipped weights)")
+    parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
+    parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data, to build DIR")
+    parser.add_argument("--json", help="write the results as JSON here")
+    parser.add_argument("--markdown", help="write the tables as markdown here")
+    args = parser.parse_args(argv)
+    test_dir = Path(args.data) / "test"
+    if not test_dir.is_dir():
+        print(f"{test_dir} is absent: building the data first", flush=True)
+        subprocess.run([sys.executable, "-m", "training.data", "build", "--cmu", args.cmu,
+                        "--out", args.data], check=True)
+    weights = load_weights(args.weights)
+    paths, frames = select_sequences(sorted(test_dir.glob("*.npz")), args.quick)
+    started, results, model_seconds = time.perf_counter(), [], 0.0
+    for index, path in enumerate(paths):
+        sequence = load_sequence(path, frames)
+        rows, seconds = run_sequence(weights, sequence)
+        model_seconds += seconds
+        results.append({"sequence": str(sequence["name"]), "category": str(sequence["category"]),
+                        "target_body": str(sequence["target_body"]),
+                        "frames": len(sequence["source_points"]),
+                        "metrics": sequence_metrics(rows, sequence)})
+        print(f"[{index + 1}/{len(paths)}] {results[-1]['sequence']} "
+              f"({results[-1]['frames']} frames): model MPJPE "
+              f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
+
+    overall = {**frame_weighted(results), "paper": PAPER}
+    total_frames = sum(r["frames"] for r in results)
+    by_body = {body: frame_weighted(results, lambda r, b=body: r["target_body"] == b)
+               for body in sorted({r["target_body"] for r in results})}
+    by_category = {c: frame_weighted(results, lambda r, c=c: r["category"] == c)
+                   for c in sorted({r["category"] for r in results})}
+    seconds = time.perf_counter() - started
+    sections = [markdown_table(overall, f"All test sequences ({len(results)} sequences, "
+                                        f"{total_frames} frames; paper: its own test set)")]
+    sections += [markdown_table(rows, f"Target body {body}") for body, rows in by_body.items()]
+    sections += [markdown_table(rows, f"Category {c}") for c, rows in by_category.items()]
+    text = "\n\n".join(sections)
+    print(text)
+    print(f"\n{total_frames} frames in {seconds:.0f} s; model (SKR + SMRM + FK + LBS, online) "
+          f"{1e3 * model_seconds / total_frames:.1f} ms per frame")
+    if args.markdown:
+        Path(args.markdown).write_text(text + "\n")
+    if args.json:
+        Path(args.json).write_text(json.dumps(
+            {"rows": overall, "frames": total_frames, "sequences": len(results),
+             "by_target_body": by_body, "by_category": by_category,
+             "per_sequence": results, "weights": args.weights or "shipped default",
+             "weights_metadata": weights.metadata, "quick": args.quick,
+             "seconds": round(seconds, 1)}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
