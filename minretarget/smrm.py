@@ -1,11 +1,14 @@
 """Stage 2, SMRM: skeletal motion retargeting, one frame at a time with explicit GRU state.
 
 Per frame, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 3):
-    1. features: x_t - x_t[0] (J*3) and the root velocity x_t[0] - x_{t-1}[0] (3)
-    2. encoder GRU over the features; decoder GRU over [encoder output, s - s[0]]
-    3. heads: (J, 4) unit quaternions and a root offset d_t (3, metres)
-    4. root r_t = k_t * x_t[0] + d_t, where k_t = leg length of s / running mean of the
-       source's leg length (the source root scaled to the target's size, then corrected)
+    1. heading H_t: the turn about +Y from +Z to the way the source faces (hips and shoulders);
+       the network sees and predicts everything in this body-aligned frame
+    2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0])
+    3. encoder GRU over the features; decoder GRU over [encoder output, s - s[0]]
+    4. heads: (J, 4) unit quaternions (the root's relative to H_t) and a root offset d_t (3, m)
+    5. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, where k_t = leg length of s /
+       running mean of the source's leg length (the source root scaled to the target's size,
+       then corrected)
 Forward kinematics of the quaternions on s at r_t (minretarget.kinematics) poses the target.
 """
 from typing import NamedTuple
@@ -14,7 +17,7 @@ import numpy as np
 
 from ._jit import kernel
 from .conventions import NUM_JOINTS
-from .kinematics import leg_length
+from .kinematics import leg_length, quaternion_multiply
 from .nn import Dense, dense, sigmoid
 from .validation import as_float32_array
 
@@ -66,17 +69,38 @@ def retarget_step(weights, state, source_joints, target_tpose):
     if state is None:
         state = initial_state(weights, source_joints)
     root = source_joints[0]
-    features = np.concatenate([(source_joints - root).ravel(), root - state.previous_root])
+    sin, cos = heading(source_joints)
+    features = np.concatenate([turn_about_up(source_joints - root, -sin, cos).ravel(),
+                               turn_about_up(root - state.previous_root, -sin, cos)])
     skeleton = (target_tpose - target_tpose[0]).ravel()                 # (J*3,)
     encoder_hidden = state.encoder_hidden.copy()
     decoder_hidden = state.decoder_hidden.copy()
     rotations, offset = _retarget_step_kernel(weights, features[None], skeleton[None],
                                               encoder_hidden, decoder_hidden)
+    half = np.arctan2(sin, cos) / 2                                     # stable at a half turn
+    rotations[0] = quaternion_multiply([np.cos(half), 0.0, np.sin(half), 0.0], rotations[0])
     leg_sum = state.leg_length_sum + float(leg_length(source_joints))
     frames = state.frames_seen + 1
     scale = np.float32(leg_length(target_tpose) / np.float32(leg_sum / frames))
     new_state = MotionState(encoder_hidden, decoder_hidden, root.copy(), leg_sum, frames)
-    return rotations, scale * root + offset, new_state
+    return rotations, scale * root + turn_about_up(offset, sin, cos), new_state
+
+
+def heading(joints):
+    """(J, 3) joints -> (sin, cos) of the turn about +Y taking +Z to the facing direction.
+
+    Facing = across x up, with across = (left hip - right hip) + (left shoulder - right
+    shoulder): in the T-pose, across is +X and the body faces +Z.
+    """
+    across = joints[1] - joints[2] + joints[16] - joints[17]
+    norm = max(float(np.hypot(across[0], across[2])), 1e-8)
+    return np.float32(-across[2] / norm), np.float32(across[0] / norm)
+
+
+def turn_about_up(vectors, sin, cos):
+    """Rotate (..., 3) vectors about +Y by the angle with this sine and cosine."""
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    return np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1).astype(np.float32)
 
 
 @kernel

@@ -68,19 +68,27 @@ def test_retarget_step_matches_twin_and_streams(tiny_weights):
     previous_root, leg_sum = frames[0, 0], 0.0
     for t, joints in enumerate(frames):
         rotations, root, state = retarget_step(smrm, state, joints, tpose)
-        x = np.concatenate([(joints - joints[0]).ravel(), joints[0] - previous_root])[None]
+        # The heading frame: +Z turned onto the facing direction (across x up).
+        across = joints[1] - joints[2] + joints[16] - joints[17]
+        facing = np.cross(across, [0.0, 1.0, 0.0])
+        facing /= np.linalg.norm(facing)
+        turn = np.array([[facing[2], 0, facing[0]], [0, 1, 0], [-facing[0], 0, facing[2]]])
+        x = np.concatenate([((joints - joints[0]) @ turn).ravel(),
+                            (joints[0] - previous_root) @ turn])[None]
         for i, layer in enumerate(smrm.encoder):
             x = hidden[0, i] = twins.gru_layer_step(x, hidden[0, i], layer)
         x = np.concatenate([x, (tpose - tpose[0]).ravel()[None]], axis=1)
         for i, layer in enumerate(smrm.decoder):
             x = hidden[1, i] = twins.gru_layer_step(x, hidden[1, i], layer)
         q = twins.dense(x, smrm.rotation_head, False).reshape(-1, 4)
-        np.testing.assert_allclose(rotations, q / np.linalg.norm(q, axis=1, keepdims=True),
-                                   atol=1e-5)
+        matrices = twins.quaternion_to_matrix(q)
+        matrices[0] = turn @ matrices[0]
+        np.testing.assert_allclose(twins.quaternion_to_matrix(rotations), matrices, atol=1e-5)
+        np.testing.assert_allclose(np.linalg.norm(rotations, axis=1), 1.0, atol=1e-5)
         leg_sum += twins_leg_length(joints)
         scale = twins_leg_length(tpose) / (leg_sum / (t + 1))
         np.testing.assert_allclose(root, scale * joints[0]
-                                   + twins.dense(x, smrm.root_head, False)[0], atol=1e-5)
+                                   + turn @ twins.dense(x, smrm.root_head, False)[0], atol=1e-5)
         previous_root = joints[0]
     assert state.frames_seen == 3
 
@@ -150,3 +158,22 @@ def test_stage_inputs_are_validated(tiny_weights):
         linear_blend_skinning(np.zeros((5, 3)), np.zeros((4, 22)), np.zeros((22, 3, 4)))
     with pytest.raises(ValueError, match="source_joints"):
         retarget_step(tiny_weights.smrm, None, np.zeros((21, 3)), np.zeros((22, 3)))
+
+
+def test_retarget_step_is_equivariant_to_turns_about_up(tiny_weights):
+    """A source motion turned about +Y gives the same motion turned: the root's rotation and
+    path turn, every other local rotation is unchanged."""
+    rng = np.random.default_rng(11)
+    tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+    frames = rng.normal(size=(4, NUM_JOINTS, 3)).astype(np.float32)
+    angle = 2.5
+    turn = twins.quaternion_to_matrix([np.cos(angle / 2), 0, np.sin(angle / 2), 0])
+    state = turned_state = None
+    for joints in frames:
+        rotations, root, state = retarget_step(tiny_weights.smrm, state, joints, tpose)
+        turned, turned_root, turned_state = retarget_step(
+            tiny_weights.smrm, turned_state, joints @ turn.T.astype(np.float32), tpose)
+        np.testing.assert_allclose(turned_root, turn @ root, atol=1e-4)
+        np.testing.assert_allclose(twins.quaternion_to_matrix(turned[0]),
+                                   turn @ twins.quaternion_to_matrix(rotations[0]), atol=1e-4)
+        np.testing.assert_allclose(np.abs((turned[1:] * rotations[1:]).sum(-1)), 1, atol=1e-4)

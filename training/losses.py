@@ -30,7 +30,7 @@ def skin_loss(skin_weights, tpose_points, posed_points, rotations, root, tpose_j
 
 def discriminator_input(joints):
     """(B, T, J, 3) motion -> the discriminator's (features (B, T, J*3 + 3), scale (B,))."""
-    features = motion_features(joints, joints[:, 0, 0, :])
+    features, _ = motion_features(joints, joints[:, 0, 0, :])
     return features, leg_length(joints[:, 0]).detach()
 
 

@@ -1,13 +1,17 @@
 """SMRM, skeletal motion retargeting (after Villegas et al. 2018), and its motion discriminator.
 
 Per frame t, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 3):
-    1. features: joints relative to the root (J*3) and root velocity x_t[0] - x_{t-1}[0] (3)
-    2. encoder GRU (layers x H) over the features
-    3. decoder GRU (layers x H) over [encoder output, s - s[0]] (the T-pose relative to its root)
-    4. heads: (J, 4) unit quaternions, and a root offset d_t (3)
-    5. root: r_t = k_t * x_t[0] + d_t with k_t = leg length of s / running mean of the source's
-       leg length (the Mixamo-style scaling of the source root, corrected by the network)
-    6. FK of the quaternions on s with root r_t gives the retargeted joints (J, 3)
+    1. heading: H_t, the turn about +Y from +Z to the way the source faces at t (from its hips
+       and shoulders); the network works in this body-aligned frame, so it never has to learn
+       that a motion turned about the vertical is the same motion
+    2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0]) (3)
+    3. encoder GRU (layers x H) over the features
+    4. decoder GRU (layers x H) over [encoder output, s - s[0]] (the T-pose relative to its root)
+    5. heads: (J, 4) unit quaternions, the root's relative to H_t, and a root offset d_t (3)
+    6. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, with k_t = leg length of s /
+       running mean of the source's leg length (the Mixamo-style scaling of the source root,
+       corrected by the network)
+    7. FK of the quaternions on s with root r_t gives the retargeted joints (J, 3)
 The recurrent state (both GRUs' hidden states, the previous source root, the running leg
 length) is explicit, so a stream can be fed one frame at a time and gives the same result as
 the whole sequence at once.
@@ -38,12 +42,42 @@ def leg_length(joints):
     return total / 2
 
 
+def heading(joints, eps=1e-8):
+    """(..., J, 3) -> (..., 2) (sin, cos) of the turn about +Y taking +Z to the facing direction.
+
+    Facing = across x up, with across = (left hip - right hip) + (left shoulder - right
+    shoulder): in the T-pose, across is +X and the body faces +Z.
+    """
+    across = joints[..., 1, :] - joints[..., 2, :] + joints[..., 16, :] - joints[..., 17, :]
+    facing = torch.stack([-across[..., 2], across[..., 0]], dim=-1)   # (sin, cos) unnormalised
+    return facing / facing.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def turn_vectors(vectors, sin_cos, inverse=False):
+    """Rotate (..., K, 3) vectors about +Y by the heading (..., 2) (or its inverse)."""
+    sin, cos = sin_cos[..., None, 0], sin_cos[..., None, 1]
+    sin = -sin if inverse else sin
+    x, y, z = vectors.unbind(-1)
+    return torch.stack([cos * x + sin * z, y, cos * z - sin * x], dim=-1)
+
+
+def turn_quaternions(quaternions, sin_cos):
+    """(..., 4) q -> h q: the rotation q followed by the heading turn h (..., 2) about +Y."""
+    half = torch.atan2(sin_cos[..., 0], sin_cos[..., 1]) / 2            # stable at a half turn
+    hw, hy = torch.cos(half), torch.sin(half)
+    w, x, y, z = quaternions.unbind(-1)
+    return torch.stack([hw * w - hy * y, hw * x + hy * z, hw * y + hy * w, hw * z - hy * x], -1)
+
+
 def motion_features(joints, previous_root):
-    """joints (B, T, J, 3), previous_root (B, 3) -> (B, T, J*3 + 3) encoder input."""
+    """joints (B, T, J, 3), previous_root (B, 3) -> (B, T, J*3 + 3) encoder input, each frame
+    turned into its own heading frame, and the headings (B, T, 2)."""
+    sin_cos = heading(joints)                                          # (B, T, 2)
     root = joints[:, :, 0, :]                                          # (B, T, 3)
-    local = (joints - root[:, :, None, :]).flatten(2)                  # (B, T, J*3)
+    local = turn_vectors(joints - root[:, :, None, :], sin_cos, inverse=True)
     velocity = root - torch.cat([previous_root[:, None, :], root[:, :-1, :]], dim=1)
-    return torch.cat([local, velocity], dim=-1)
+    velocity = turn_vectors(velocity[:, :, None, :], sin_cos, inverse=True)
+    return torch.cat([local.flatten(2), velocity[:, :, 0, :]], dim=-1), sin_cos
 
 
 class MotionRetargeter(nn.Module):
@@ -84,18 +118,21 @@ class MotionRetargeter(nn.Module):
         b, t, j, _ = source_joints.shape
         if state is None:
             state = self.initial_state(source_joints[:, 0])
-        features = motion_features(source_joints, state.previous_root)
+        features, sin_cos = motion_features(source_joints, state.previous_root)
         encoded, encoder_hidden = self.encoder(features, state.encoder_hidden)
         skeleton = (target_tpose - target_tpose[:, :1, :]).flatten(1)    # (B, J*3)
         decoder_input = torch.cat([encoded, skeleton[:, None, :].expand(b, t, -1)], dim=-1)
         decoded, decoder_hidden = self.decoder(decoder_input, state.decoder_hidden)
         rotations = normalize_quaternions(self.rotation_head(decoded).view(b, t, j, 4))
+        rotations = torch.cat([turn_quaternions(rotations[:, :, :1], sin_cos[:, :, None]),
+                               rotations[:, :, 1:]], dim=2)
 
         # Running mean of the source's leg length, then the scaled source root plus the offset.
         leg_sum = state.leg_length_sum[:, None] + leg_length(source_joints).cumsum(dim=1)
         frames = state.frames_seen[:, None] + torch.arange(1, t + 1, device=leg_sum.device)
         scale = leg_length(target_tpose)[:, None] / (leg_sum / frames)  # (B, T)
-        root = scale[..., None] * source_joints[:, :, 0, :] + self.root_head(decoded)
+        offset = turn_vectors(self.root_head(decoded)[:, :, None, :], sin_cos)[:, :, 0, :]
+        root = scale[..., None] * source_joints[:, :, 0, :] + offset
         joints, _ = forward_kinematics(rotations, root, target_tpose[:, None])
         new_state = MotionState(encoder_hidden, decoder_hidden, source_joints[:, -1, 0, :],
                                 leg_sum[:, -1], frames[:, -1].to(leg_sum.dtype))
@@ -106,7 +143,7 @@ class MotionDiscriminator(nn.Module):
     """Scores how real a skeleton motion looks, from windows of its frames (training only).
 
     Input: the motion's encoder features (B, T, J*3 + 3) (root-relative joints and root
-    velocity, see ``motion_features``) divided by the skeleton's leg length, so bodies of
+    velocity in the heading frame, see ``motion_features``) divided by the skeleton's leg length, so bodies of
     every size are judged on the same footing. Output: (B, T') logits, one per window.
     """
 
