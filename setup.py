@@ -2,6 +2,11 @@ from pathlib import Path
 
 from setuptools import find_packages, setup
 
+# The command line's file formats and previews (imported lazily; the core needs none): trimesh
+# reads and writes PLY/OBJ, matplotlib (with its Pillow) draws PNG/GIF, tqdm shows progress.
+# The .glb and .bvh writers need only NumPy.
+CLI = ["trimesh>=4.0", "matplotlib>=3.6", "tqdm>=4.60"]
+
 setup(
     name="minretarget",
     version="0.1.0",
@@ -13,10 +18,12 @@ setup(
     packages=find_packages(include=["minretarget", "minretarget.*", "training", "training.*"]),
     package_data={"minretarget": ["data/*.npz", "data/*.json"]},
     install_requires=["numpy>=1.24", "numba>=0.59", "scipy>=1.10"],
+    entry_points={"console_scripts": ["minretarget = minretarget.cli:main"]},
     extras_require={
+        "cli": CLI,
         # torch is pinned: 2.13.0's CPU wheel is on the project's machines, and an unpinned
         # torch pulls a multi-GB CUDA build.
         "train": ["torch==2.13.0", "anny==0.6.2", "trimesh>=4.0", "tqdm>=4.60", "matplotlib>=3.6"],
-        "test": ["pytest>=7", "hypothesis>=6"],
+        "test": ["pytest>=7", "hypothesis>=6"] + CLI,
     },
 )

@@ -1,4 +1,4 @@
-"""Reading BVH (Biovision Hierarchy) motion capture files. NumPy only.
+"""Reading and writing BVH (Biovision Hierarchy) motion capture files. NumPy only.
 
 File model
     HIERARCHY: one ROOT and nested JOINTs; each has an OFFSET (its translation from its parent
@@ -25,6 +25,9 @@ Conventions (the usual reading of BVH)
 
 Errors: any malformed input raises ``BVHError`` (a ``ValueError``) whose message starts with
 ``<file>:<line>:``.
+
+Writing is the reader's inverse: ``parse_bvh(format_bvh(motion))`` gives ``motion`` back, every
+number bit for bit.
 """
 import gzip
 import math
@@ -33,6 +36,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .atomic import atomic_write
 from .kinematics import matrix_to_quaternion, quaternion_to_matrix
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
@@ -302,6 +306,99 @@ def scale_motion(motion, factor):
     values[:, position_columns] *= factor
     return replace(motion, offsets=motion.offsets * factor, values=values,
                    end_sites={j: o * factor for j, o in motion.end_sites.items()})
+
+
+# ----------------------------------------------------------------------------- writing
+
+def write_bvh(path, motion):
+    """Write ``motion`` to ``path`` as a BVH file, atomically (see ``format_bvh``)."""
+    text = format_bvh(motion)
+    with atomic_write(path) as file:
+        file.write(text.encode("ascii"))
+
+
+def format_bvh(motion):
+    """The text of a BVH file holding ``motion``; ``parse_bvh`` gives it back exactly.
+
+    Numbers are written in Python's shortest round-trip form (``repr``), so every OFFSET and
+    channel value reads back bit for bit. Line ends are LF; indentation is one tab per level.
+
+    Args:
+        motion: BVHMotion whose joints are in depth-first order (each joint's subtree right
+            after it), the order a hierarchy lists them and the reader returns them in.
+    Raises:
+        ValueError naming the joint or the array at fault: a name with whitespace, joints not
+        in depth-first order, unknown or repeated channels, ``values`` not (T, C) for the
+        channels' count C, non-finite numbers.
+    """
+    _check_writable(motion)
+    lines = ["HIERARCHY"]
+    open_joints = []                                   # the current joint's ancestors, and it
+
+    def close(joint):
+        depth = len(open_joints)                       # joint is already popped: its depth
+        if joint in motion.end_sites:
+            lines.extend(["\t" * (depth + 1) + "End Site", "\t" * (depth + 1) + "{",
+                          "\t" * (depth + 2) + "OFFSET " + _numbers(motion.end_sites[joint]),
+                          "\t" * (depth + 1) + "}"])
+        lines.append("\t" * depth + "}")
+
+    for joint, name in enumerate(motion.names):
+        while open_joints and open_joints[-1] != motion.parents[joint]:
+            close(open_joints.pop())
+        indent = "\t" * len(open_joints)
+        channels = motion.channels[joint]
+        lines.extend([indent + ("ROOT " if joint == 0 else "JOINT ") + name, indent + "{",
+                      indent + "\tOFFSET " + _numbers(motion.offsets[joint]),
+                      indent + f"\tCHANNELS {len(channels)}" + "".join(" " + c for c in channels)])
+        open_joints.append(joint)
+    while open_joints:
+        close(open_joints.pop())
+    lines.extend(["MOTION", f"Frames: {motion.num_frames}",
+                  f"Frame Time: {float(motion.frame_time)!r}"])
+    lines.extend(_numbers(row) for row in motion.values)
+    return "\n".join(lines) + "\n"
+
+
+def _numbers(values):
+    return " ".join(repr(float(v)) for v in values)
+
+
+def _check_writable(motion):
+    """Raise ValueError if ``format_bvh`` cannot write ``motion`` so that it reads back."""
+    count = len(motion.names)
+    if count == 0 or len(motion.parents) != count or len(motion.channels) != count or \
+            np.shape(motion.offsets) != (count, 3):
+        raise ValueError(f"BVH motion: names, parents, channels and offsets must describe the "
+                         f"same joints; got {count} names, {len(motion.parents)} parents, "
+                         f"{len(motion.channels)} channel lists, "
+                         f"offsets {np.shape(motion.offsets)}")
+    ancestors = []
+    for joint, (name, parent) in enumerate(zip(motion.names, motion.parents)):
+        if not name or any(c.isspace() for c in name) or not name.isascii():
+            raise ValueError(f"BVH motion: joint {joint} name {name!r} must be non-empty ASCII "
+                             "without whitespace")
+        while ancestors and ancestors[-1] != parent:
+            ancestors.pop()
+        if (joint == 0) != (parent == -1) or (joint > 0 and not ancestors):
+            raise ValueError(f"BVH motion: joint {name!r} (parent {parent}) breaks depth-first "
+                             "order with one root first")
+        ancestors.append(joint)
+        channels = motion.channels[joint]
+        if any(c not in CHANNEL_NAMES for c in channels) or len(set(channels)) != len(channels):
+            raise ValueError(f"BVH motion: joint {name!r} has bad channels {channels}; each of "
+                             f"{', '.join(CHANNEL_NAMES)} at most once")
+    if any(j not in range(count) or np.shape(o) != (3,) for j, o in motion.end_sites.items()):
+        raise ValueError("BVH motion: end_sites must map joint indices to (3,) offsets")
+    width = sum(len(c) for c in motion.channels)
+    if np.ndim(motion.values) != 2 or np.shape(motion.values)[1] != width:
+        raise ValueError(f"BVH motion: values must have shape (T, {width}), got "
+                         f"{np.shape(motion.values)}")
+    numbers = [np.asarray(motion.offsets), np.asarray(motion.values),
+               np.asarray([motion.frame_time]), *map(np.asarray, motion.end_sites.values())]
+    if not all(np.isfinite(a).all() for a in numbers) or not motion.frame_time > 0:
+        raise ValueError("BVH motion: offsets, values and end sites must be finite and the "
+                         f"frame time positive (frame time {motion.frame_time!r})")
 
 
 # ----------------------------------------------------------------------------- rotations

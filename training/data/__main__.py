@@ -4,10 +4,13 @@
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
                                   [--clip-stride K] [--body-cache DIR]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
+    python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
+                                   [--points P] [--seed S]
 """
 import argparse
 import sys
 import time
+from pathlib import Path
 
 from .datasets import BuildConfig, build, cmu_motions
 
@@ -57,6 +60,15 @@ def _preview(args):
     print(f"wrote {args.out}")
 
 
+def _sample(args):
+    from .sample import build_sample, write_sample
+    arrays = build_sample(args.cmu, trial=args.trial, points=args.points, seed=args.seed,
+                          cache_dir=args.body_cache)
+    write_sample(args.out, arrays)
+    print(f"wrote {args.out}: {arrays['source_points'].shape[0]} frames, "
+          f"{_size(Path(args.out).stat().st_size)}")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m training.data", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -79,12 +91,19 @@ def main(argv=None):
     preview_parser.add_argument("--out", required=True, help="output .png")
     preview_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")
     preview_parser.add_argument("--trial", default="07_01", help="CMU trial to play (a walk)")
-    for sub in (build_parser, preview_parser):
+    sample_parser = commands.add_parser("sample", help="write the demo's sample .npz")
+    sample_parser.add_argument("--out", required=True, help="output .npz "
+                               "(the shipped one: minretarget/data/sample.npz)")
+    sample_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")
+    sample_parser.add_argument("--trial", default="08_01", help="CMU test-split trial (a walk)")
+    sample_parser.add_argument("--points", type=int, default=2048, help="points per cloud")
+    sample_parser.add_argument("--seed", type=int, default=0, help="random seed")
+    for sub in (build_parser, preview_parser, sample_parser):
         sub.add_argument("--body-cache", default=None,
                          help="body cache folder (default $MINRETARGET_CACHE/bodies or "
                               "~/.cache/minretarget/bodies)")
     args = parser.parse_args(argv)
-    (_build if args.command == "build" else _preview)(args)
+    {"build": _build, "preview": _preview, "sample": _sample}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -9,19 +9,12 @@ All files share one 43-joint skeleton (hip, abdomen, chest, neck, head, l/rColla
 l/rForeArm, l/rHand, l/rButtock, l/rThigh, l/rShin, l/rFoot, plus eyes and fingers, ignored).
 
 Mapping (DESIGN.md, "Motions")
-    Each canonical joint j takes the world orientation of one BVH joint, relative to the BVH
-    zero pose: ``G[j] = G_bvh[bone](t) @ G_bvh[bone](zero pose)^-1``. In BVH the zero pose has
-    every world rotation equal to the identity, so ``G[j] = G_bvh[bone](t)``. The local
-    rotation is then ``R[j] = G[parent]^T @ G[j]``; FK of R on ``tpose_joints`` reproduces the
-    BVH positions of the mapped joints (the buttock joints between hip and thigh carry zero
-    rotation in every file, so dropping them loses nothing).
-    Joints CMU lacks take the identity local rotation, i.e. move rigidly with their parent:
-      - spine3: CMU's chest is one rigid segment from the chest joint up to the neck and
-        collars; chest's rotation goes on spine2 and spine3 is a point on that segment
-        (halfway from chest to neck), so the target's spine_02 + spine_03 bend like that one
-        CMU segment and FK on the CMU skeleton stays exact.
-      - left_foot / right_foot (ball of the foot): the l/rFoot End Site, 12 cm in front of and
-        4 cm below the ankle; CMU has no toe rotation, so the toes stay rigid with the ankle.
+    ``minretarget.skeletons`` holds the CMU joint table and the mapping (the runtime reads BVH
+    sources with it too): each canonical joint takes the world orientation of one CMU joint
+    relative to the zero pose; spine3 and the balls of the feet, which CMU lacks, move rigidly
+    with their parent. The local rotation is ``R[j] = G[parent]^T @ G[j]``; FK of R on
+    ``tpose_joints`` reproduces the BVH positions of the mapped joints (the buttock joints
+    between hip and thigh carry zero rotation in every file, so dropping them loses nothing).
 Axes
     The CMU zero pose already faces +Z (toes at +Z) with the left hand at +X, +Y up (checked
     in tests/test_cmu_mapping.py on the file), so no axis change is applied.
@@ -41,24 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
-from minretarget.bvh import read_bvh, resample, world_transforms
-from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS
+from minretarget.bvh import read_bvh, resample
+from minretarget.conventions import FPS, JOINT_INDEX, PARENTS
 from minretarget.kinematics import matrix_to_quaternion
+from minretarget.skeletons import CMU_BONES, canonical_world  # noqa: F401 (re-export)
 
 CENTIMETRES = 0.01
-
-# Canonical joint -> the BVH joint whose world rotation (and position) it takes; None: the
-# joint moves rigidly with its canonical parent (see the module docstring).
-CMU_BONES = {
-    "pelvis": "hip", "left_hip": "lThigh", "right_hip": "rThigh", "spine1": "abdomen",
-    "left_knee": "lShin", "right_knee": "rShin", "spine2": "chest",
-    "left_ankle": "lFoot", "right_ankle": "rFoot", "spine3": None,
-    "left_foot": None, "right_foot": None, "neck": "neck",
-    "left_collar": "lCollar", "right_collar": "rCollar", "head": "head",
-    "left_shoulder": "lShldr", "right_shoulder": "rShldr",
-    "left_elbow": "lForeArm", "right_elbow": "rForeArm",
-    "left_wrist": "lHand", "right_wrist": "rHand",
-}
 
 # True capture rate of each collection. Every header says Frame Time 0.0083333 (120 fps).
 # - aclstm/framerates.txt: salsa 60, martial 120, indian 120.
@@ -204,41 +185,10 @@ def load_motion(path, fps=FPS, source_fps=None):
         source_fps = capture_fps(path) or bvh.fps
     bvh = resample(replace(bvh, values=bvh.values[LEAD_IN_FRAMES:]), fps=fps,
                    source_fps=source_fps)
-    positions, rotations = canonical_world(bvh)
+    positions, rotations = canonical_world(bvh, "cmu")
     return Motion(name=trial_name(path), rotations=local_quaternions(rotations),
                   root=positions[:, 0].astype(np.float32), fps=int(fps),
                   category=trial_category(path), source_fps=float(source_fps))
-
-
-def canonical_world(bvh):
-    """World positions and rotations of the 22 canonical joints on the CMU skeleton.
-
-    Args:
-        bvh: BVHMotion on the CMU skeleton, in metres.
-    Returns:
-        positions: (T, J, 3) float64 metres: each mapped joint at its BVH joint; spine3 and
-            left/right_foot carried rigidly by their parent (module docstring).
-        rotations: (T, J, 3, 3) float64 world rotations relative to the zero pose.
-    """
-    bvh_positions, bvh_rotations = world_transforms(bvh)
-    index = {name: i for i, name in enumerate(bvh.names)}
-    rigid_offsets = {                           # zero-pose offset from the canonical parent
-        "spine3": 0.5 * bvh.offsets[index["neck"]],
-        "left_foot": bvh.end_sites[index["lFoot"]],
-        "right_foot": bvh.end_sites[index["rFoot"]],
-    }
-    positions = np.empty((bvh.num_frames, NUM_JOINTS, 3))
-    rotations = np.empty((bvh.num_frames, NUM_JOINTS, 3, 3))
-    for j, name in enumerate(JOINT_NAMES):
-        bone = CMU_BONES[name]
-        if bone is not None:
-            positions[:, j] = bvh_positions[:, index[bone]]
-            rotations[:, j] = bvh_rotations[:, index[bone]]
-        else:
-            parent = PARENTS[j]
-            rotations[:, j] = rotations[:, parent]
-            positions[:, j] = positions[:, parent] + rotations[:, parent] @ rigid_offsets[name]
-    return positions, rotations
 
 
 def local_quaternions(rotations):
@@ -254,7 +204,7 @@ def tpose_joints(bvh):
     """(J, 3) float32 canonical T-pose joints of a CMU skeleton, metres: its zero pose with the
     pelvis above the origin and the feet flat on the floor y = 0."""
     zero_pose = replace(bvh, values=np.zeros((1, bvh.values.shape[1])))
-    joints = canonical_world(zero_pose)[0][0]                                # (J, 3)
+    joints = canonical_world(zero_pose, "cmu")[0][0]                         # (J, 3)
     joints -= joints[0]
     joints[:, 1] += _BALL_HEIGHT - joints[[JOINT_INDEX["left_foot"],
                                            JOINT_INDEX["right_foot"]], 1].min()

@@ -1,0 +1,116 @@
+"""NumPy ``.npz`` archives written member by member, and arrays read back frame by frame.
+
+``np.savez`` needs every array in memory at once; a retargeted sequence's vertices (T, V, 3)
+need not fit. ``NpzWriter`` streams instead: a member's ``.npy`` header is written for a known
+shape, then its frames one at a time. The result is an ordinary ``.npz`` that ``np.load`` reads
+(``allow_pickle=False``). Members are stored uncompressed, as ``np.savez`` does, unless
+``compress``; timestamps are fixed, so the same arrays always give the same bytes.
+``NpzFrames`` reads one (T, ...) member back a frame at a time.
+"""
+import contextlib
+import zipfile
+
+import numpy as np
+
+_TIMESTAMP = (1980, 1, 1, 0, 0, 0)         # the earliest a zip can hold: reproducible bytes
+
+
+class NpzWriter:
+    """Writes an ``.npz`` into an open, seekable binary file; a context manager that closes
+    the archive (not the file) on exit."""
+
+    def __init__(self, file, compress=False):
+        self._zip = zipfile.ZipFile(file, "w", allowZip64=True)
+        self._method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+
+    def _open(self, name):
+        info = zipfile.ZipInfo(f"{name}.npy", date_time=_TIMESTAMP)
+        info.compress_type = self._method
+        return self._zip.open(info, "w", force_zip64=True)
+
+    def add(self, name, array):
+        """Write a whole array (no object dtypes: the archive must load without pickle)."""
+        with self._open(name) as member:
+            np.lib.format.write_array(member, np.asarray(array), allow_pickle=False)
+
+    @contextlib.contextmanager
+    def frames(self, name, shape, dtype):
+        """Write the member ``name`` of ``shape`` (T, ...) one frame at a time.
+
+        Yields ``write(frame)``, to be called exactly T times with arrays of shape ``shape[1:]``.
+        Raises ValueError for a frame of another shape or a frame count other than T.
+        """
+        dtype = np.dtype(dtype)
+        header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                  "shape": tuple(int(s) for s in shape)}
+        written = 0
+        with self._open(name) as member:
+            np.lib.format.write_array_header_2_0(member, header)
+
+            def write(frame):
+                nonlocal written
+                frame = np.asarray(frame)
+                if frame.shape != header["shape"][1:] or written == header["shape"][0]:
+                    raise ValueError(f"{name}: frame {written} of shape {frame.shape} does not "
+                                     f"fit an array of shape {header['shape']}")
+                member.write(np.ascontiguousarray(frame, dtype=dtype).tobytes())
+                written += 1
+
+            yield write
+            if written != header["shape"][0]:
+                raise ValueError(f"{name}: {written} frames written of {header['shape'][0]}")
+
+    def close(self):
+        self._zip.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info):
+        self.close()
+
+
+class NpzFrames:
+    """One (T, ...) array of an ``.npz`` file, read lazily: ``len``, ``shape``, iteration.
+
+    Only one frame is in memory at a time (a Fortran-ordered member is loaded whole).
+    """
+
+    def __init__(self, path, key):
+        self.path, self.key = path, key
+        with zipfile.ZipFile(path) as archive, archive.open(f"{key}.npy") as member:
+            self.shape, self.fortran_order, self.dtype = _read_header(member)
+        if not self.shape:
+            raise ValueError(f"{path}: array {key!r} is a scalar, not a sequence of frames")
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        if self.fortran_order:
+            with np.load(self.path, allow_pickle=False) as data:
+                yield from data[self.key]
+            return
+        frame_shape = self.shape[1:]
+        size = self.dtype.itemsize * int(np.prod(frame_shape, dtype=np.int64))
+        with zipfile.ZipFile(self.path) as archive, archive.open(f"{self.key}.npy") as member:
+            _read_header(member)
+            for index in range(self.shape[0]):
+                data = member.read(size)
+                if len(data) != size:
+                    raise ValueError(f"{self.path}: array {self.key!r} ends at frame {index} "
+                                     f"of {self.shape[0]}")
+                yield np.frombuffer(data, dtype=self.dtype).reshape(frame_shape)
+
+
+def _read_header(member):
+    """(shape, fortran_order, dtype) of an ``.npy`` stream, which is left at its data."""
+    version = np.lib.format.read_magic(member)
+    readers = {(1, 0): np.lib.format.read_array_header_1_0,
+               (2, 0): np.lib.format.read_array_header_2_0}
+    if version not in readers:
+        raise ValueError(f".npy format version {version} is not supported")
+    shape, fortran_order, dtype = readers[version](member)
+    if dtype.hasobject:
+        raise ValueError("object arrays are refused (they would need pickle)")
+    return shape, fortran_order, dtype

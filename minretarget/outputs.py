@@ -1,0 +1,168 @@
+"""Writing a retargeted stream to files, frame by frame, in the formats asked for.
+
+    with open_writers(out_dir, ("ply", "glb"), target, count, fps, space) as write:
+        for frame in frames:          # RetargetedFrame, canonical metres
+            write(frame)
+
+Formats (``FORMATS``), lengths in the user's units and axes (``space``) except glTF's:
+    ply, obj   ``frame_000000.ply`` ...: the posed target, its faces and vertex order kept
+               (a point cloud when the target has no faces).
+    npz        ``result.npz``, every array (``npz_keys``); ``vertices`` is streamed into the
+               archive as frames come, so it is never held in memory whole.
+    glb        ``result.glb``: the rigged, animated target (``minretarget.formats.glb``);
+               glTF fixes metres and +Y up, so it ignores ``space``.
+    bvh        ``result.bvh``: the skeleton motion (``minretarget.skeletons.rig_to_bvh``).
+Across frames only joints, rotations, root and source joints are kept (J * 13 floats a
+frame), for npz, glb and bvh. Every file is written atomically: an interrupted run leaves no
+``result.*`` and only complete frame files.
+"""
+import contextlib
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_write
+from .bvh import write_bvh
+from .conventions import JOINT_NAMES, NUM_JOINTS, PARENTS
+from .formats.glb import write_glb
+from .formats.mesh import write_mesh
+from .formats.npz import NpzWriter
+from .skeletons import rig_to_bvh
+from .units import from_canonical, rotations_from_canonical
+
+FORMATS = ("ply", "obj", "npz", "glb", "bvh")
+
+
+def parse_formats(text):
+    """"ply,glb" -> ("ply", "glb"); ValueError for an empty list or an unknown name."""
+    formats = tuple(dict.fromkeys(f.strip().lower() for f in text.split(",") if f.strip()))
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise ValueError(f"unknown output format(s) {', '.join(unknown) or '(none)'}; choose "
+                         f"from {','.join(FORMATS)}")
+    return formats
+
+
+def frame_name(index, suffix):
+    """``frame_000042.ply``: six digits or more, so names sort in frame order."""
+    return f"frame_{index:06d}.{suffix}"
+
+
+class _Track:
+    """The small per-frame arrays, kept for the writers that need the whole motion."""
+
+    def __init__(self):
+        self.joints, self.rotations, self.root, self.source_joints = [], [], [], []
+
+    def append(self, frame):
+        self.joints.append(frame.joints)
+        self.rotations.append(frame.rotations)
+        self.root.append(frame.root)
+        self.source_joints.append(frame.source_joints)
+
+    def stacked(self, name):
+        """(T, ...) float32 array of one field; (0, ...) before any frame."""
+        shapes = {"joints": (NUM_JOINTS, 3), "rotations": (NUM_JOINTS, 4), "root": (3,),
+                  "source_joints": (NUM_JOINTS, 3)}
+        values = getattr(self, name)
+        return np.stack(values) if values else np.empty((0,) + shapes[name], np.float32)
+
+
+@contextlib.contextmanager
+def _mesh_frames(out_dir, suffix, target, space):
+    index = 0
+
+    def write(frame):
+        nonlocal index
+        write_mesh(out_dir / frame_name(index, suffix), from_canonical(frame.vertices, space),
+                   target.faces)
+        index += 1
+
+    yield write
+
+
+def npz_keys(target, fps, space, track):
+    """The arrays of ``result.npz`` besides ``vertices`` (T, V, 3), user units and axes:
+    joints (T, J, 3), rotations (T, J, 4) local quaternions (w, x, y, z) in the user's axes,
+    root (T, 3), source_joints (T, J, 3); target_points (V, 3), target_faces (F, 3) int64
+    (F = 0 for a point cloud), target_tpose_joints (J, 3), target_skin_weights (V, J);
+    fps, joint_names (J,), parents (J,), units ("m", "cm" or "mm"), up_axis ("y" or "z")."""
+    faces = np.empty((0, 3), np.int64) if target.faces is None else target.faces
+    return {
+        "joints": from_canonical(track.stacked("joints"), space),
+        "rotations": rotations_from_canonical(track.stacked("rotations"), space),
+        "root": from_canonical(track.stacked("root"), space),
+        "source_joints": from_canonical(track.stacked("source_joints"), space),
+        "target_points": from_canonical(target.points, space),
+        "target_faces": faces.astype(np.int64),
+        "target_tpose_joints": from_canonical(target.tpose_joints, space),
+        "target_skin_weights": target.skin_weights,
+        "fps": np.array(float(fps)), "joint_names": np.array(JOINT_NAMES),
+        "parents": np.array(PARENTS, np.int64),
+        "units": np.array(space.units), "up_axis": np.array(space.up_axis),
+    }
+
+
+@contextlib.contextmanager
+def _npz(path, target, count, fps, space, track):
+    with atomic_write(path) as file, NpzWriter(file) as archive:
+        with archive.frames("vertices", (count, len(target.points), 3), np.float32) as vertices:
+            yield lambda frame: vertices(from_canonical(frame.vertices, space))
+        for key, array in npz_keys(target, fps, space, track).items():
+            archive.add(key, array)
+
+
+@contextlib.contextmanager
+def _glb(path, target, fps, track):
+    yield lambda frame: None
+    write_glb(path, target.points, target.faces, target.skin_weights, target.tpose_joints,
+              track.stacked("rotations"), track.stacked("root"), fps)
+
+
+@contextlib.contextmanager
+def _bvh(path, target, fps, space, track):
+    yield lambda frame: None
+    motion = rig_to_bvh(from_canonical(target.tpose_joints, space),
+                        rotations_from_canonical(track.stacked("rotations"), space),
+                        from_canonical(track.stacked("root"), space), 1.0 / fps)
+    write_bvh(path, motion)
+
+
+@contextlib.contextmanager
+def open_writers(out_dir, formats, target, count, fps, space):
+    """Open a writer per format in ``out_dir`` (module docstring).
+
+    Args:
+        out_dir: output folder, created if needed.
+        formats: names from ``FORMATS``.
+        target: ``retargeter.Target`` (canonical metres).
+        count: T, the number of frames that will be written (the npz header needs it).
+        fps: frames per second, for glb and bvh timing and the npz.
+        space: ``units.Space`` of the outputs.
+    Yields:
+        ``write(frame)`` for each RetargetedFrame in order; the files that need the whole
+        motion are written when the block ends without error.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    track = _Track()
+    with contextlib.ExitStack() as stack:
+        writers = [track.append]
+        for name in formats:
+            if name in ("ply", "obj"):
+                writer = _mesh_frames(out_dir, name, target, space)
+            elif name == "npz":
+                writer = _npz(out_dir / "result.npz", target, count, fps, space, track)
+            elif name == "glb":
+                writer = _glb(out_dir / "result.glb", target, fps, track)
+            elif name == "bvh":
+                writer = _bvh(out_dir / "result.bvh", target, fps, space, track)
+            else:
+                raise ValueError(f"unknown output format {name!r}; choose from {FORMATS}")
+            writers.append(stack.enter_context(writer))
+
+        def write(frame):
+            for writer in writers:
+                writer(frame)
+
+        yield write

@@ -1,0 +1,158 @@
+"""Reading what the command line retargets: SOURCE motions and TARGET bodies.
+
+SOURCE, one of:
+    - a folder of per-frame point files (``.ply``, ``.obj``, ``.xyz``, ``.npy``), in natural
+      order of their names (``frame2`` before ``frame10``); hidden files and other suffixes
+      are skipped;
+    - an ``.npy`` array (T, P, 3) of frames (memory-mapped), or an ``.npz`` holding one such
+      array (its only array, else the key ``points`` or ``source_points``);
+    - a ``.bvh`` / ``.bvh.gz`` skeleton motion: its joints map onto the 22 canonical joints
+      (``minretarget.skeletons``) and it is resampled to the model's 30 fps; it is retargeted
+      from its joints directly, without the skeleton regressor (SKR).
+TARGET: a ``.ply`` / ``.obj`` mesh or point cloud, an ``.xyz`` or ``.npy`` (V, 3) file, in T-pose.
+
+Everything is converted on reading to canonical metres and axes (``minretarget.units``).
+Frames are read lazily, one at a time, so memory does not grow with the number of frames
+(a BVH file is read whole: it is small).
+"""
+import json
+import re
+from pathlib import Path
+from typing import Iterable, NamedTuple
+
+import numpy as np
+
+from .bvh import read_bvh, resample
+from .conventions import FPS
+from .formats.mesh import POINT_SUFFIXES, read_points
+from .formats.npz import NpzFrames
+from .skeletons import canonical_world
+from .units import to_canonical
+
+SAMPLE = Path(__file__).parent / "data" / "sample.npz"
+_NPZ_KEYS = ("points", "source_points")
+
+
+class Source(NamedTuple):
+    """A motion to retarget, opened for one pass over its frames."""
+    path: str
+    kind: str              # "points": (P, 3) clouds, or "skeleton": (J, 3) joints
+    count: int             # T, the number of frames
+    fps: float             # frames per second of ``frames``
+    frames: Iterable       # T arrays, canonical metres, float32; iterate once
+
+
+def natural_key(name):
+    """Sort key for natural order: digit runs compare as numbers (``f2`` < ``f10``)."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def frame_files(folder):
+    """The point files of a folder (``POINT_SUFFIXES``, not hidden) in natural order."""
+    files = [p for p in Path(folder).iterdir()
+             if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in POINT_SUFFIXES]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def _subsample(points, count, rng):
+    """A random subset of ``count`` points (all of them if there are fewer)."""
+    if count is None or len(points) <= count:
+        return points
+    return points[rng.choice(len(points), count, replace=False)]
+
+
+def open_source(path, space, fps=None, points=None, seed=0):
+    """Open a SOURCE (module docstring).
+
+    Args:
+        path: folder, ``.npy``, ``.npz``, ``.bvh`` or ``.bvh.gz``.
+        space: the source's ``units.Space``.
+        fps: the source's frame rate; None: 30 for point clouds, the header's for BVH.
+        points: resample every cloud to this many points (a random subset, the same for the
+            same seed and frame), or None to keep them all; not for BVH sources.
+        seed: seed of that resampling.
+    Returns:
+        Source; clouds keep their frame rate, BVH motions come out at 30 fps.
+    Raises:
+        ValueError naming the file (and frame) for anything unreadable or mis-shaped.
+    """
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith((".bvh", ".bvh.gz")):
+        if points is not None:
+            raise ValueError(f"{path}: --points applies to point-cloud sources, not to BVH")
+        return _bvh_source(path, space, fps)
+    if path.is_dir():
+        files = frame_files(path)
+        if not files:
+            raise ValueError(f"{path}: no point files ({', '.join(POINT_SUFFIXES)}) in folder")
+        raw = (read_points(f)[0] for f in files)
+        count = len(files)
+    elif name.endswith(".npy"):
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+        _check_frames_shape(path, array.shape)
+        raw, count = iter(array), len(array)
+    elif name.endswith(".npz"):
+        array = NpzFrames(path, _npz_key(path))
+        _check_frames_shape(path, array.shape)
+        raw, count = iter(array), len(array)
+    else:
+        raise ValueError(f"{path}: SOURCE must be a folder of frames, a .npy/.npz array of "
+                         "frames or a .bvh file")
+
+    def frames():
+        for index, cloud in enumerate(raw):
+            rng = np.random.default_rng([seed, index])
+            yield to_canonical(_subsample(np.asarray(cloud), points, rng), space)
+
+    return Source(str(path), "points", count, float(fps or FPS), frames())
+
+
+def _npz_key(path):
+    with np.load(path, allow_pickle=False) as data:
+        keys = data.files
+    if len(keys) == 1:
+        return keys[0]
+    for key in _NPZ_KEYS:
+        if key in keys:
+            return key
+    raise ValueError(f"{path}: holds {', '.join(keys)}; expected one array, or one named "
+                     f"{' or '.join(_NPZ_KEYS)}")
+
+
+def _check_frames_shape(path, shape):
+    if len(shape) != 3 or shape[2] != 3:
+        raise ValueError(f"{path}: expected an array of frames (T, P, 3), got shape {shape}")
+
+
+def _bvh_source(path, space, fps):
+    motion = read_bvh(path)
+    motion = resample(motion, fps=FPS, source_fps=fps)
+    positions, _ = canonical_world(motion, source=str(path))                # (T, J, 3)
+    joints = to_canonical(positions, space)
+    return Source(str(path), "skeleton", len(joints), float(FPS), iter(joints))
+
+
+def read_target(path, space):
+    """Read a TARGET: (V, 3) float32 canonical T-pose points and (F, 3) int64 faces or None."""
+    points, faces = read_points(path)
+    return to_canonical(points, space), faces
+
+
+def load_sample(path=SAMPLE):
+    """The demo's sample: a source clip of point clouds and a target mesh in T-pose.
+
+    Returns:
+        source: Source of (P, 3) clouds, canonical metres.
+        target_points: (V, 3) float32; target_faces: (F, 3) int64.
+        metadata: dict (what the clip and the bodies are, and their licences).
+    """
+    with np.load(path, allow_pickle=False) as data:
+        target_points = data["target_points"].astype(np.float32)
+        target_faces = data["target_faces"].astype(np.int64)
+        fps = float(data["fps"])
+        metadata = json.loads(str(data["metadata"]))
+    clouds = NpzFrames(path, "source_points")
+    frames = (np.asarray(cloud, dtype=np.float32) for cloud in clouds)
+    return (Source(str(path), "points", len(clouds), fps, frames), target_points, target_faces,
+            metadata)

@@ -1,0 +1,318 @@
+"""The command line end to end on tiny inputs (tests/golden/tiny_weights.npz), every output
+read back, units and axes, previews, the demo, and the messages for bad input or a missing
+``cli`` extra."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import GOLDEN
+from minretarget import Retargeter
+from minretarget import cli
+from minretarget.bvh import read_bvh, resample, world_transforms
+from minretarget.conventions import JOINT_NAMES, NUM_JOINTS
+from minretarget.formats.glb import accessor_array, read_glb
+from minretarget.formats.mesh import read_points, write_mesh
+from minretarget.skeletons import depth_first_order
+from minretarget.sources import SAMPLE, load_sample
+from minretarget.units import (from_canonical, make_space, rotations_to_canonical,
+                               to_canonical)
+from test_glb import node_world_matrices
+
+trimesh = pytest.importorskip("trimesh")
+WEIGHTS = str(GOLDEN / "tiny_weights.npz")
+ROOT = Path(__file__).resolve().parent.parent
+CMU_WALK = ROOT.parent / "shared" / "data" / "cmu" / "cgspeed" / "08" / "08_01.bvh.gz"
+FRAMES, POINTS = 6, 160
+# Natural order differs from plain string order here (f10 after f4), and every reader is used.
+FOLDER_NAMES = ["f1.npy", "f2.xyz", "f3.ply", "f4.obj", "f10.npy", "f11.xyz"]
+
+
+def run(*args):
+    return cli.main([str(a) for a in args])
+
+
+def load(path):
+    with np.load(path, allow_pickle=False) as data:
+        return dict(data)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    """Canonical target mesh and source frames, and the same frames in every SOURCE kind."""
+    folder = tmp_path_factory.mktemp("inputs")
+    with np.load(GOLDEN / "tiny_stream.npz") as data:
+        counts = data["source_counts"][:FRAMES]
+        clouds = np.split(data["source_points"][:counts.sum()], np.cumsum(counts)[:-1])
+    frames = np.stack([c[:POINTS] for c in clouds]).astype(np.float32)      # (T, P, 3)
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    target = (mesh.vertices * [0.3, 0.9, 0.2] + [0, 0.9, 0]).astype(np.float32)
+    write_mesh(folder / "target.ply", target, mesh.faces)
+    np.save(folder / "target.npy", target)
+    (folder / "frames").mkdir()
+    for name, frame in zip(FOLDER_NAMES, frames):
+        path = folder / "frames" / name
+        if path.suffix == ".npy":
+            np.save(path, frame)
+        elif path.suffix == ".xyz":
+            np.savetxt(path, frame, fmt="%.9g")
+        else:
+            write_mesh(path, frame)
+    (folder / "frames" / "README.txt").write_text("not a frame")
+    np.save(folder / "frames.npy", frames)
+    np.savez(folder / "frames.npz", points=frames, labels=np.arange(FRAMES))
+    return {"dir": folder, "frames": frames, "target": target, "faces": mesh.faces}
+
+
+@pytest.fixture(scope="module")
+def folder_run(inputs):
+    out = inputs["dir"] / "out_folder"
+    assert run("retarget", inputs["dir"] / "frames", inputs["dir"] / "target.ply", "--out", out,
+               "--format", "ply,obj,npz,glb,bvh", "--weights", WEIGHTS) == 0
+    return out
+
+
+def api_result(inputs, frames):
+    retargeter = Retargeter.from_weights(WEIGHTS)
+    retargeter.set_target(inputs["target"], inputs["faces"])
+    return list(retargeter.run(frames))
+
+
+# ----------------------------------------------------------------------------- sources
+
+def test_folder_source_matches_the_python_api(inputs, folder_run):
+    result = load(folder_run / "result.npz")
+    expected = api_result(inputs, inputs["frames"])
+    assert result["vertices"].shape == (FRAMES, len(inputs["target"]), 3)
+    np.testing.assert_allclose(result["vertices"], [f.vertices for f in expected], atol=1e-5)
+    np.testing.assert_allclose(result["source_joints"], [f.source_joints for f in expected],
+                               atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["frames.npy", "frames.npz"])
+def test_array_sources_match_the_folder(inputs, folder_run, name):
+    out = inputs["dir"] / f"out_{name}"
+    assert run("retarget", inputs["dir"] / name, inputs["dir"] / "target.ply", "--out", out,
+               "--format", "npz", "--weights", WEIGHTS) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["result.npz"]
+    np.testing.assert_allclose(load(out / "result.npz")["vertices"],
+                               load(folder_run / "result.npz")["vertices"], atol=1e-5)
+
+
+def test_points_option_takes_a_seeded_subset(inputs):
+    out = inputs["dir"] / "out_points"
+    for _ in range(2):                                     # twice: the same bytes of arrays
+        assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+                   "--out", out, "--format", "npz", "--points", 100, "--weights", WEIGHTS) == 0
+        result = load(out / "result.npz")
+        if _ == 0:
+            first = result
+    np.testing.assert_array_equal(first["vertices"], result["vertices"])
+    subsets = [frame[np.random.default_rng([0, t]).choice(POINTS, 100, replace=False)]
+               for t, frame in enumerate(inputs["frames"])]
+    np.testing.assert_allclose(result["source_joints"],
+                               [f.source_joints for f in api_result(inputs, subsets)], atol=1e-5)
+
+
+def test_bvh_source_skips_skr(inputs, folder_run, capsys):
+    """Our own result.bvh as a SOURCE: its (canonical-name) joints are the source skeleton."""
+    out = inputs["dir"] / "out_bvh"
+    assert run("retarget", folder_run / "result.bvh", inputs["dir"] / "target.ply", "--out", out,
+               "--format", "npz", "--weights", WEIGHTS) == 0
+    result, previous = load(out / "result.npz"), load(folder_run / "result.npz")
+    np.testing.assert_allclose(result["source_joints"], previous["joints"], atol=1e-4)
+    capsys.readouterr()
+    assert run("retarget", folder_run / "result.bvh", inputs["dir"] / "target.ply", "--out", out,
+               "--points", 100, "--weights", WEIGHTS) == 1
+    assert "--points applies to point-cloud sources" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not CMU_WALK.exists(), reason="CMU data not present")
+def test_cmu_bvh_source_in_centimetres(inputs):
+    out = inputs["dir"] / "out_cmu"
+    assert run("retarget", CMU_WALK, inputs["dir"] / "target.ply", "--out", out, "--format",
+               "npz", "--units", "cm", "--fps", 120, "--weights", WEIGHTS) == 0
+    result = load(out / "result.npz")
+    expected_frames = resample(read_bvh(CMU_WALK), fps=30, source_fps=120).num_frames
+    assert result["source_joints"].shape == (expected_frames, NUM_JOINTS, 3)
+    assert result["fps"] == 30 and result["units"] == "cm"
+    pelvis_height = result["source_joints"][:, 0, 1] / 100                    # cm -> m
+    assert 0.7 < np.median(pelvis_height) < 1.0
+
+
+# ----------------------------------------------------------------------------- outputs
+
+def test_every_output_reads_back(inputs, folder_run):
+    result = load(folder_run / "result.npz")
+    names = sorted(p.name for p in folder_run.iterdir())
+    assert names == sorted([f"frame_{t:06d}.{s}" for t in range(FRAMES) for s in ("ply", "obj")]
+                           + ["result.npz", "result.glb", "result.bvh"])
+    # PLY and OBJ: the posed target, its faces and vertex order kept.
+    for t in range(FRAMES):
+        for suffix, tolerance in (("ply", 0), ("obj", 1e-6)):
+            vertices, faces = read_points(folder_run / f"frame_{t:06d}.{suffix}")
+            np.testing.assert_allclose(vertices, result["vertices"][t], atol=tolerance)
+            np.testing.assert_array_equal(faces, inputs["faces"])
+    # NPZ: every array, shaped as documented.
+    shapes = {"joints": (FRAMES, 22, 3), "rotations": (FRAMES, 22, 4), "root": (FRAMES, 3),
+              "source_joints": (FRAMES, 22, 3), "target_points": inputs["target"].shape,
+              "target_faces": inputs["faces"].shape, "target_tpose_joints": (22, 3),
+              "target_skin_weights": (len(inputs["target"]), 22), "joint_names": (22,)}
+    for key, shape in shapes.items():
+        assert result[key].shape == shape, key
+    np.testing.assert_array_equal(result["target_points"], inputs["target"])
+    np.testing.assert_allclose(result["target_skin_weights"].sum(axis=1), 1, atol=1e-5)
+    assert tuple(result["joint_names"]) == JOINT_NAMES and result["fps"] == 30
+    # BVH: read by our parser, its forward kinematics gives the result's joints.
+    motion = read_bvh(folder_run / "result.bvh")
+    positions, _ = world_transforms(motion)
+    assert motion.num_frames == FRAMES and motion.fps == 30
+    np.testing.assert_allclose(positions, result["joints"][:, depth_first_order()], atol=1e-4)
+    # GLB: 22 joints, weights summing to 1, one animation, node FK = the result's joints.
+    gltf, binary = read_glb(folder_run / "result.glb")
+    assert len(gltf["skins"][0]["joints"]) == 22 and len(gltf["animations"]) == 1
+    attributes = gltf["meshes"][0]["primitives"][0]["attributes"]
+    np.testing.assert_allclose(accessor_array(gltf, binary, attributes["WEIGHTS_0"]).sum(1), 1,
+                               atol=1e-6)
+    paths = {c["target"]["path"] for c in gltf["animations"][0]["channels"]}
+    assert paths == {"rotation", "translation"}
+    for t in range(FRAMES):
+        world = node_world_matrices(gltf, binary, t)
+        np.testing.assert_allclose(world[:, :3, 3], result["joints"][t], atol=1e-5)
+    assert len(trimesh.load(folder_run / "result.glb").geometry) == 1
+
+
+def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run):
+    """The same inputs as millimetre, Z-up files give the same motion, written back in
+    millimetres and Z-up (the glb stays metres and Y-up)."""
+    space = make_space("mm", "z")
+    folder = inputs["dir"] / "mm_z"
+    folder.mkdir()
+    write_mesh(folder / "target.ply", from_canonical(inputs["target"], space), inputs["faces"])
+    np.save(folder / "frames.npy", from_canonical(inputs["frames"], space))
+    out = folder / "out"
+    assert run("retarget", folder / "frames.npy", folder / "target.ply", "--out", out,
+               "--format", "ply,npz,glb,bvh", "--units", "mm", "--up-axis", "z",
+               "--weights", WEIGHTS) == 0
+    metres, mm = load(folder_run / "result.npz"), load(out / "result.npz")
+    assert mm["units"] == "mm" and mm["up_axis"] == "z"
+    for key in ("vertices", "joints", "root", "source_joints", "target_points",
+                "target_tpose_joints"):
+        np.testing.assert_allclose(to_canonical(mm[key], space), metres[key], atol=1e-4,
+                                   err_msg=key)
+    np.testing.assert_allclose(rotations_to_canonical(mm["rotations"], space),
+                               metres["rotations"], atol=1e-4)
+    np.testing.assert_allclose(read_points(out / "frame_000003.ply")[0], mm["vertices"][3],
+                               atol=1e-3)
+    positions, _ = world_transforms(read_bvh(out / "result.bvh"))            # mm, Z up
+    np.testing.assert_allclose(positions, mm["joints"][:, depth_first_order()], atol=0.1)
+    glb_mm, glb_m = read_glb(out / "result.glb"), read_glb(folder_run / "result.glb")
+    position = glb_m[0]["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+    np.testing.assert_allclose(accessor_array(*glb_mm, position),
+                               accessor_array(*glb_m, position), atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- render, demo
+
+def test_render_png_and_gif(folder_run, capsys):
+    from PIL import Image
+    assert run("render", folder_run / "result.npz", "--out", folder_run / "strip.png") == 0
+    assert run("render", folder_run / "result.npz", "--out", folder_run / "anim.gif") == 0
+    with Image.open(folder_run / "strip.png") as image:
+        assert image.format == "PNG" and image.width > image.height
+    with Image.open(folder_run / "anim.gif") as image:
+        assert image.format == "GIF" and image.n_frames == FRAMES
+    assert "drew 6 frames" in capsys.readouterr().out
+
+
+@pytest.fixture
+def tiny_sample(inputs, tmp_path, monkeypatch):
+    """The demo on a 4-frame sample of the shipped sample's layout."""
+    path = tmp_path / "sample.npz"
+    np.savez(path, source_points=inputs["frames"][:4].astype(np.float16),
+             target_points=inputs["target"], target_faces=inputs["faces"].astype(np.uint16),
+             fps=np.array(30), metadata=np.array(json.dumps({"description": "tiny"})))
+    monkeypatch.setattr(cli, "load_sample", lambda: load_sample(path))
+    return path
+
+
+def test_demo_writes_every_output_and_a_preview(tiny_sample, tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert run("demo", "--out", out, "--weights", WEIGHTS) == 0
+    names = {p.name for p in out.iterdir()}
+    assert {"result.npz", "result.glb", "result.bvh", "preview.png", "frame_000003.ply",
+            "frame_000003.obj"} <= names and len(names) == 4 * 2 + 4
+    assert "demo: tiny" in capsys.readouterr().out
+
+
+def test_demo_without_default_weights_says_what_to_do(tiny_sample, tmp_path, monkeypatch,
+                                                       capsys):
+    monkeypatch.setattr(cli, "DEFAULT_WEIGHTS", tmp_path / "absent.npz")
+    assert run("demo", "--out", tmp_path / "demo") == 1
+    err = capsys.readouterr().err
+    assert "default weights are not installed" in err and "--weights" in err
+    assert "Traceback" not in err
+
+
+def test_shipped_sample():
+    assert SAMPLE.stat().st_size < 3_000_000
+    source, target_points, target_faces, metadata = load_sample()
+    assert source.count >= 60 and source.fps == 30 and source.kind == "points"
+    frames = list(source.frames)
+    assert len(frames) == source.count and frames[0].shape == (2048, 3)
+    assert frames[0].dtype == np.float32 and np.isfinite(frames).all()
+    assert target_faces.max() < len(target_points) and target_points[:, 1].min() == 0
+    assert "mocap.cs.cmu.edu" in metadata["licences"] and metadata["description"]
+
+
+# ----------------------------------------------------------------------------- messages
+
+def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
+    np.save(tmp_path / "flat.npy", np.zeros((5, 3)))
+    cases = [(["retarget", tmp_path / "nowhere", inputs["dir"] / "target.ply"], "nowhere"),
+             (["retarget", inputs["dir"] / "frames.npy", tmp_path / "flat.npy"],
+              "flat.npy: target"),
+             (["retarget", tmp_path / "flat.npy", inputs["dir"] / "target.ply"], "flat.npy"),
+             (["retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+               "--format", "ply,fbx"], "fbx"),
+             (["render", tmp_path / "flat.npy", "--out", tmp_path / "x.jpg"], ".png or a .gif")]
+    for args, message in cases:
+        code = run(*args, *(["--out", tmp_path / "o", "--weights", WEIGHTS]
+                            if args[0] == "retarget" else []))
+        err = capsys.readouterr().err
+        assert code == 1 and message in err and "Traceback" not in err, (args, err)
+        assert err.startswith("minretarget: error:") and err.count("\n") == 1
+
+
+MISSING_EXTRA = """
+import runpy, sys
+# A None entry makes every import of the module fail, importlib's included.
+for name in ("trimesh", "matplotlib", "torch", "training"):
+    sys.modules[name] = None
+sys.argv = ["minretarget"] + sys.argv[1:]
+runpy.run_module("minretarget", run_name="__main__")
+"""
+
+
+def test_missing_cli_extra_is_a_message_not_a_traceback(inputs, tmp_path):
+    def command(*args):
+        return subprocess.run([sys.executable, "-c", MISSING_EXTRA, *map(str, args)],
+                              capture_output=True, text=True, cwd=ROOT, timeout=300,
+                              env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+    # .npy in, npz/glb/bvh out: none of the extra's file libraries, no torch, no training/.
+    ok = command("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.npy",
+                 "--out", tmp_path / "a", "--format", "npz,glb,bvh", "--weights", WEIGHTS)
+    assert ok.returncode == 0, ok.stderr
+    assert {p.name for p in (tmp_path / "a").iterdir()} == {"result.npz", "result.glb",
+                                                            "result.bvh"}
+    blocked = command("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+                      "--out", tmp_path / "b", "--weights", WEIGHTS)
+    assert blocked.returncode == 3
+    assert "'trimesh'" in blocked.stderr and 'pip install "minretarget[cli]"' in blocked.stderr
+    assert "Traceback" not in blocked.stderr
+    assert not (tmp_path / "b").exists() or not any((tmp_path / "b").iterdir())
