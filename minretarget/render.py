@@ -45,13 +45,12 @@ def _selected_frames(count, suffix):
     return np.arange(0, count, max(1, math.ceil(count / MAX_GIF_FRAMES)))
 
 
-def _collect(result, source_points, keep):
+def _collect(result, vertices, source_points, keep):
     """The drawn frames' arrays, canonical: list of dicts (joints, source_joints, vertices,
-    source_points or None); only these frames are ever held in memory."""
+    source_points or None); only these frames' vertices are ever held in memory."""
     space = make_space(str(result["units"]), str(result["up_axis"]))
     joints = to_canonical(result["joints"], space)
     source_joints = to_canonical(result["source_joints"], space)
-    vertices = result["vertices_frames"]
     subset = np.random.default_rng(0).permutation(vertices.shape[1])[:MAX_POINTS]
     clouds = iter(source_points) if source_points is not None else None
     keep, frames = set(int(k) for k in keep), []
@@ -130,11 +129,11 @@ def render(result_path, out_path, source_points=None):
                              f"{', '.join(sorted(missing))})")
         result = {key: data[key] for key in ("joints", "source_joints", "fps", "units",
                                              "up_axis")}
-    result["vertices_frames"] = NpzFrames(result_path, "vertices")
     count = len(result["joints"])
     if count == 0:
         raise ValueError(f"{result_path}: holds no frames")
-    frames = _collect(result, source_points, _selected_frames(count, suffix))
+    frames = _collect(result, NpzFrames(result_path, "vertices"), source_points,
+                      _selected_frames(count, suffix))
     source_limits = _limits(frames, "source_joints", "source_points")
     result_limits = _limits(frames, "joints", "vertices")
     fps = float(result["fps"])

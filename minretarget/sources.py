@@ -17,6 +17,7 @@ Frames are read lazily, one at a time, so memory does not grow with the number o
 """
 import json
 import re
+import zipfile
 from pathlib import Path
 from typing import Iterable, NamedTuple
 
@@ -88,12 +89,12 @@ def open_source(path, space, fps=None, points=None, seed=0):
             raise ValueError(f"{path}: no point files ({', '.join(POINT_SUFFIXES)}) in folder")
         raw = (read_points(f)[0] for f in files)
         count = len(files)
-    elif name.endswith(".npy"):
-        array = np.load(path, mmap_mode="r", allow_pickle=False)
-        _check_frames_shape(path, array.shape)
-        raw, count = iter(array), len(array)
-    elif name.endswith(".npz"):
-        array = NpzFrames(path, _npz_key(path))
+    elif name.endswith((".npy", ".npz")):
+        try:
+            array = (np.load(path, mmap_mode="r", allow_pickle=False) if name.endswith(".npy")
+                     else NpzFrames(path, _npz_key(path)))
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as error:
+            raise ValueError(f"{path}: cannot read an array of frames: {error}") from None
         _check_frames_shape(path, array.shape)
         raw, count = iter(array), len(array)
     else:
@@ -116,7 +117,7 @@ def _npz_key(path):
     for key in _NPZ_KEYS:
         if key in keys:
             return key
-    raise ValueError(f"{path}: holds {', '.join(keys)}; expected one array, or one named "
+    raise ValueError(f"it holds {', '.join(keys)}; expected one array, or one named "
                      f"{' or '.join(_NPZ_KEYS)}")
 
 

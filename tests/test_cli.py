@@ -273,10 +273,16 @@ def test_shipped_sample():
 
 def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
     np.save(tmp_path / "flat.npy", np.zeros((5, 3)))
+    (tmp_path / "broken.npz").write_bytes(b"PK not really a zip")
+    np.savez(tmp_path / "two.npz", a=np.zeros((2, 70, 3)), b=np.zeros((2, 70, 3)))
     cases = [(["retarget", tmp_path / "nowhere", inputs["dir"] / "target.ply"], "nowhere"),
              (["retarget", inputs["dir"] / "frames.npy", tmp_path / "flat.npy"],
               "flat.npy: target"),
              (["retarget", tmp_path / "flat.npy", inputs["dir"] / "target.ply"], "flat.npy"),
+             (["retarget", tmp_path / "broken.npz", inputs["dir"] / "target.ply"],
+              "broken.npz: cannot read"),
+             (["retarget", tmp_path / "two.npz", inputs["dir"] / "target.ply"],
+              "holds a, b; expected one array"),
              (["retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
                "--format", "ply,fbx"], "fbx"),
              (["render", tmp_path / "flat.npy", "--out", tmp_path / "x.jpg"], ".png or a .gif")]
