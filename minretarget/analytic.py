@@ -11,7 +11,7 @@ therefore inherited from the parent, never invented.
 import numpy as np
 
 from .conventions import NUM_JOINTS, PARENTS
-from .kinematics import matrix_to_quaternion
+from .kinematics import matrix_to_quaternion, quaternion_to_matrix
 from .validation import as_float32_array
 
 CHILDREN = tuple(tuple(c for c in range(NUM_JOINTS) if PARENTS[c] == j) for j in range(NUM_JOINTS))
@@ -31,11 +31,7 @@ def _rotation_between(a, b):
         helper = np.where(np.abs(a[opposite, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
         cross[opposite] = _unit(np.cross(a[opposite], helper))
     q = np.concatenate([(1 + dot)[:, None], cross], axis=-1)       # half-angle quaternion
-    w, x, y, z = np.moveaxis(_unit(q), -1, 0)
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)],
-                    axis=-2)
+    return quaternion_to_matrix(q).astype(np.float64)
 
 
 def _best_rotation(a, b):
