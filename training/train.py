@@ -152,8 +152,14 @@ def plot_log(rows, path, title):
     import matplotlib.pyplot as plt
     keys = [k for k in rows[0] if k not in ("step", "seconds")]
     steps = [row["step"] for row in rows]
-    figure, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3), squeeze=False)
-    for axis, key in zip(axes[0], keys):
+    columns = min(4, len(keys))
+    rows_of_plots = -(-len(keys) // columns)
+    figure, axes = plt.subplots(rows_of_plots, columns, figsize=(3.2 * columns,
+                                                                 2.8 * rows_of_plots),
+                                squeeze=False)
+    for axis in axes.flat[len(keys):]:
+        axis.set_visible(False)
+    for axis, key in zip(axes.flat, keys):
         axis.plot(steps, [row.get(key, np.nan) for row in rows], marker=".")
         axis.set_title(key, fontsize=9)
         axis.set_xlabel("step")
