@@ -48,9 +48,10 @@ def write_datasets(directory, rng):
         body = rng.integers(3, size=n)
         rotations, root = random_quaternions(rng, (n, NUM_JOINTS)), rng.normal(size=(n, 3))
         joints = posed(rotations, root.astype(np.float32), bodies[body])
-        np.savez(directory / f"skr_{split}.npz", body=body.astype(np.int32), joints=joints,
-                 points=(joints[:, rng.integers(NUM_JOINTS, size=100)]
-                         + rng.normal(0, 0.05, (n, 100, 3))).astype(np.float32))
+        for name in ("skr", "skr_tpose"):
+            np.savez(directory / f"{name}_{split}.npz", body=body.astype(np.int32), joints=joints,
+                     points=(joints[:, rng.integers(NUM_JOINTS, size=100)]
+                             + rng.normal(0, 0.05, (n, 100, 3))).astype(np.float32))
         tpose_points = (bodies[body][:, rng.integers(NUM_JOINTS, size=60)]
                         + rng.normal(0, 0.03, (n, 60, 3))).astype(np.float32)
         np.savez(directory / f"skin_{split}.npz", tpose_points=tpose_points,

@@ -19,6 +19,7 @@ class SKRStage:
     batch_size: int = 32
     learning_rate: float = 1e-4
     points: int = 2048           # source points per training cloud (a random subset per batch)
+    tpose_fraction: float = 0.125  # of each batch: bodies in T-pose (skr_tpose_*.npz)
     eval_every: int = 1000
 
 

@@ -197,25 +197,33 @@ def mean_over_batches(count, size, function):
 def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None):
     stage_recipe = recipe.skr
     train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
+    tpose_train, tpose_val = (load_split(data_dir, f"skr_tpose_{s}", device)
+                              for s in ("train", "val"))
     model = SkeletonRegressor(recipe.model).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     stage = Stage("skr", run_dir, {"skr": model}, {"skr": optimizer}, stage_recipe.steps,
                   stage_recipe.eval_every, recipe.seed)
+    tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
 
     def train_step(stage):
-        index = stage.batch(len(train["points"]), stage_recipe.batch_size)
-        points = subsample_points(train["points"][index], stage_recipe.points, stage.generator)
-        loss = skr_loss(model(points), train["joints"][index])
+        moving = stage.batch(len(train["points"]), stage_recipe.batch_size - tpose_count)
+        still = stage.batch(len(tpose_train["points"]), tpose_count)
+        points = torch.cat([train["points"][moving], tpose_train["points"][still]])
+        joints = torch.cat([train["joints"][moving], tpose_train["joints"][still]])
+        points = subsample_points(points, stage_recipe.points, stage.generator)
+        loss = skr_loss(model(points), joints)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         return {"loss": loss.item()}
 
     def evaluate():
-        def errors(index):
-            predicted = model(val["points"][index])
-            return {"val_mpjpe": float((predicted - val["joints"][index]).norm(dim=-1).mean())}
-        return mean_over_batches(min(VALIDATION_LIMIT, len(val["points"])), 64, errors)
+        def errors(data, name):
+            def error(index):
+                predicted = model(data["points"][index])
+                return {name: float((predicted - data["joints"][index]).norm(dim=-1).mean())}
+            return mean_over_batches(min(VALIDATION_LIMIT, len(data["points"])), 64, error)
+        return {**errors(val, "val_mpjpe"), **errors(tpose_val, "val_tpose_mpjpe")}
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 

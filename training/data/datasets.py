@@ -8,6 +8,8 @@ the body names of ``manifest.json``'s ``bodies[split]``.
 ``skr_{train,val}.npz``: static frames for the skeleton regressor.
     points (N, P, 3) float32: an area-uniform sample of the posed mesh, in random order.
     joints (N, J, 3) float32: the posed joints.    body (N,) int32.
+``skr_tpose_{train,val}.npz``: the same arrays for bodies standing in T-pose (half of the
+clouds are subsets of the mesh vertices), because retargeting targets come in T-pose.
 ``skin_{train,val}.npz``: T-pose and posed surface points in correspondence, for the skinning
 field.
     tpose_points (N, Q, 3) float32, posed_points (N, Q, 3) float32: the same surface points
@@ -73,6 +75,7 @@ class BuildConfig:
     seed: int = 0
     bodies: int = 120            # training bodies (the paper: 120)
     frames: int = 20_000         # SKR training frames (the paper: ~65,000)
+    tpose_frames: int = 2_000    # SKR training frames of bodies in T-pose (targets come so)
     points: int = 2048           # P, points of a source cloud (SKR frames and test frames)
     skin_samples: int = 2_000    # SKIN training samples
     skin_points: int = 1024      # Q, surface points per SKIN sample
@@ -193,6 +196,37 @@ def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
     return out
 
 
+def skr_tpose_samples(bodies, count, points, rng, max_shift, progress=None):
+    """Bodies standing in T-pose, as retargeting targets come: SKR must find their skeletons.
+
+    Half the clouds are random subsets of the mesh vertices (a target is often given as its
+    mesh), half are area-uniform samples; heading and horizontal shift are augmented like the
+    motion frames. Same arrays as ``skr_samples``.
+    """
+    body = rng.integers(len(bodies), size=count).astype(np.int32)
+    heading, shift = _augmentation(rng, (count,), max_shift)
+    identity = np.zeros((count, NUM_JOINTS, 4), np.float32)
+    identity[..., 0] = 1
+    out = {"points": np.empty((count, points, 3), np.float32),
+           "joints": np.empty((count, NUM_JOINTS, 3), np.float32), "body": body}
+    for b, model in enumerate(bodies):
+        chunk = np.flatnonzero(body == b)
+        if not len(chunk):
+            continue
+        rotations, root = augment(identity[chunk], np.broadcast_to(model.joints[0], (len(chunk), 3)),
+                                  heading[chunk], shift[chunk])
+        vertices, joints = pose_body(model, rotations, root)
+        sampled = sample_point_clouds(vertices, model.faces, points, rng)
+        for i, n in enumerate(chunk):
+            use_vertices = rng.random() < 0.5 and len(model.vertices) >= points
+            out["points"][n] = (vertices[i][rng.choice(len(model.vertices), points, replace=False)]
+                                if use_vertices else sampled[i])
+        out["joints"][chunk] = joints
+        if progress is not None:
+            progress.update(len(chunk))
+    return out
+
+
 def skin_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift, progress=None):
     """T-pose and posed surface points in correspondence; see the module docstring."""
     frame = _draw_frames(len(frames.root), count, rng)
@@ -307,7 +341,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     out_dir = Path(out_dir)
     # Each dataset has its own random stream, so changing one size leaves the others alone.
     streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
-        ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test"))}
+        ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test",
+         "skr_tpose_train", "skr_tpose_val"))}
     bodies = {"train": [body_from_seed(s, cache_dir)
                         for s in sampled_body_seeds(config.bodies, "train")],
               "val": [body_from_seed(s, cache_dir)
@@ -315,6 +350,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     targets, sources = benchmark_bodies(cache_dir)
     frames = {split: _Frames.of(motions[split]) for split in ("train", "val")}
     counts = {"skr_train": config.frames, "skr_val": max(1, config.frames // 10),
+              "skr_tpose_train": config.tpose_frames,
+              "skr_tpose_val": max(1, config.tpose_frames // 10),
               "skin_train": config.skin_samples, "skin_val": max(1, config.skin_samples // 10),
               "smrm_train": len(frames["train"].clip_starts(config.clip_stride)),
               "smrm_val": len(frames["val"].clip_starts(config.clip_stride)),
@@ -330,7 +367,10 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                     ("skr", skr_samples, dict(count=counts[f"skr_{split}"], points=config.points)),
                     ("skin", skin_samples, dict(count=counts[f"skin_{split}"],
                                                 points=config.skin_points)),
-                    ("smrm", smrm_clips, dict(stride=config.clip_stride))):
+                    ("smrm", smrm_clips, dict(stride=config.clip_stride)),
+                    ("skr_tpose", lambda frames, actor_hip_height, **rest:
+                     skr_tpose_samples(**rest),
+                     dict(count=counts[f"skr_tpose_{split}"], points=config.points))):
                 name = f"{kind}_{split}"
                 progress.set_postfix_str(name)
                 path = out_dir / f"{name}.npz"
