@@ -16,7 +16,7 @@ setup(
     license="MIT",
     python_requires=">=3.10",
     packages=find_packages(include=["minretarget", "minretarget.*", "training", "training.*"]),
-    package_data={"minretarget": ["data/*.npz", "data/*.json"]},
+    package_data={"minretarget": ["data/*.npz", "data/*.json", "data/*.sha256"]},
     install_requires=["numpy>=1.24", "numba>=0.59", "scipy>=1.10"],
     entry_points={"console_scripts": ["minretarget = minretarget.cli:main"]},
     extras_require={

@@ -32,6 +32,7 @@ number bit for bit.
 import gzip
 import math
 import os
+import zlib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -42,6 +43,7 @@ from .kinematics import matrix_to_quaternion, quaternion_to_matrix
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 _CHANNEL_BY_LOWER = {name.lower(): name for name in CHANNEL_NAMES}
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2}
+MAX_UPSAMPLING = 10          # resample: at most this many output frames per source frame
 
 
 class BVHError(ValueError):
@@ -107,7 +109,7 @@ def read_bvh(path, scale=1.0):
     if data[:2] == b"\x1f\x8b":
         try:
             data = gzip.decompress(data)
-        except (OSError, EOFError) as error:      # truncated or corrupt gzip stream
+        except (OSError, EOFError, zlib.error) as error:    # truncated or corrupt gzip
             raise BVHError(f"{source}:0: cannot decompress: {error}") from None
     # latin-1 decodes any byte, so stray bytes surface as parse errors with a line number.
     return parse_bvh(data.decode("latin-1"), source=source, scale=scale)
@@ -543,6 +545,11 @@ def resample(motion, fps=30, source_fps=None):
     source_fps = motion.fps if source_fps is None else float(source_fps)
     if not (fps > 0 and source_fps > 0):
         raise ValueError(f"frame rates must be positive, got fps={fps}, source_fps={source_fps}")
+    if fps > MAX_UPSAMPLING * source_fps:
+        # A frame time of minutes is a damaged header, and would make the motion huge.
+        raise ValueError(f"a source at {source_fps:g} fps (frame time {1 / source_fps:g} s) "
+                         f"is too slow to resample to {fps:g} fps: at most "
+                         f"{MAX_UPSAMPLING}x more frames")
     count = motion.num_frames
     out_count = 0 if count == 0 else int(math.floor((count - 1) * fps / source_fps + 1e-9)) + 1
     u = np.arange(out_count) * (source_fps / fps)          # (T',) fractional source index

@@ -2,26 +2,37 @@
 
     minretarget demo [--out DIR] [--weights FILE]
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
-                         [--up-axis y|z] [--units m|cm|mm] [--points N] [--weights FILE]
+                         [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
+                         [--weights FILE] [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
 axes: ``minretarget.units``. Needs the ``cli`` extra (``pip install "minretarget[cli]"``):
 without it the command says so instead of failing with a traceback. Bad input (a missing or
-malformed file, a wrong shape) is reported in one line naming the file, exit status 1.
+malformed file, a wrong shape or value) is reported in one line naming the file (and frame),
+exit status 1; likely mistakes (units, up axis, not a T-pose) in ``minretarget: warning:``
+lines. An interrupted ``retarget`` keeps its complete frames and a checkpoint:
+``--resume`` finishes it with the same result as an uninterrupted run
+(``minretarget.checkpoint``). A fresh run refuses an output folder that holds another run's
+files unless ``--overwrite``; the demo replaces its own.
 """
 import argparse
+import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from . import __version__
+from .checkpoint import (CHECKPOINT_EVERY, TRACK, Track, prepare_out_dir, remove_checkpoint,
+                         run_record, save_checkpoint)
 from .extras import MissingExtra, require
 from .outputs import FORMATS, frame_name, open_writers, parse_formats
 from .render import render
 from .retargeter import Retargeter
 from .sources import load_sample, open_source, read_target
 from .units import CANONICAL, UNITS, UP_AXES, make_space
+from .validation import InputWarning, check_body
 from .weights import DEFAULT_WEIGHTS
 
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
@@ -35,44 +46,80 @@ def load_retargeter(weights=None):
             f"the default weights are not installed ({DEFAULT_WEIGHTS} is missing): they ship "
             "with minretarget once the model is trained. Pass --weights FILE to use a weights "
             "file of your own (python -m training.train ... exports one).")
-    return Retargeter.from_weights(weights)
+    # warn=False: the command line checks the inputs itself, naming files and options.
+    return Retargeter.from_weights(weights, warn=False)
 
 
-def set_target(retargeter, points, faces, name):
-    """``retargeter.set_target(points, faces)``, its errors prefixed with the target's name."""
+def set_target(retargeter, points, faces, name, space=CANONICAL):
+    """``retargeter.set_target(points, faces)``, its errors prefixed with the target's name;
+    warns (``validation.InputWarning``) if it does not look like a T-pose person in ``space``."""
     try:
         retargeter.set_target(points, faces)
     except ValueError as error:
         raise ValueError(f"{name}: {error}") from None
+    check_body(points, name, space, tpose=True)
 
 
-def retarget_to_files(retargeter, source, out_dir, formats, space, progress=True):
-    """Retarget every frame of ``source`` onto the retargeter's target; write ``formats``.
+def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, resume=False,
+                      overwrite=False, progress=True):
+    """Retarget every frame of a source onto the retargeter's target; write ``formats``.
 
     Args:
         retargeter: Retargeter with weights and a target (``set_target``).
-        source: ``sources.Source`` (canonical metres).
+        open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.
+        settings: {"points": ..., "seed": ...}: how the source was resampled.
+        resume: continue the interrupted run in ``out_dir``; overwrite: replace the files of
+            an earlier run there (``checkpoint.prepare_out_dir``).
         progress: show a tqdm progress bar on stderr.
     Returns:
-        the number of frames written.
+        the Source retargeted (its ``count`` frames are all written, resumed or not).
     """
+    source = open_at(0)
     if source.count == 0:
         raise ValueError(f"{source.path}: holds no frames")
     tqdm = require("tqdm", "the progress bar").tqdm
+    out_dir = Path(out_dir)
+    run = run_record(source, retargeter.target, retargeter.weights, formats, space, **settings)
+    start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
+    if start:
+        source = open_at(start)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    retargeter.state = state
     step = retargeter.step if source.kind == "points" else retargeter.step_skeleton
-    with open_writers(out_dir, formats, retargeter.target, source.count, source.fps,
-                      space) as write:
-        frames = tqdm(source.frames, total=source.count, unit="frame", desc="retargeting",
-                      disable=not progress, file=sys.stderr)
-        for index, data in enumerate(frames):
-            try:
-                frame = step(data)
-            except ValueError as error:
-                raise ValueError(f"{source.path}: frame {index}: {error}") from None
-            write(frame)
-    return source.count
+    track = Track(out_dir / TRACK, start)
+    # A resumed run's npz gets the first frames' vertices again from their saved rotations
+    # and root, posed exactly as the interrupted run posed them.
+    past = (retargeter.pose(fields["rotations"], fields["root"])[0]
+            for fields in track.frames())
+    done = start
+    try:
+        save_checkpoint(out_dir, run, state, start, track)
+        with open_writers(out_dir, formats, retargeter.target, source.count, source.fps, space,
+                          track, past) as write:
+            frames = tqdm(source.frames, total=source.count, initial=start, unit="frame",
+                          desc="retargeting", disable=not progress, file=sys.stderr)
+            for index, data in enumerate(frames, start):
+                try:
+                    frame = step(data)
+                except ValueError as error:
+                    raise ValueError(f"{source.frame_name(index)}: {error}") from None
+                if index == 0:
+                    check_body(data, source.frame_name(0), space)
+                write(frame)
+                done, state = index + 1, retargeter.state
+                if done % CHECKPOINT_EVERY == 0:
+                    save_checkpoint(out_dir, run, state, done, track)
+    except BaseException:
+        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here.
+        if done > start:
+            save_checkpoint(out_dir, run, state, done, track)
+        raise
+    finally:
+        track.close()
+    remove_checkpoint(out_dir)
+    return source
 
 
 def _written(out_dir, formats, count):
@@ -88,11 +135,18 @@ def _retarget(args):
     formats = parse_formats(args.format)
     retargeter = load_retargeter(args.weights)
     target_points, target_faces = read_target(args.target, space)
-    set_target(retargeter, target_points, target_faces, args.target)
-    source = open_source(args.source, space, fps=args.fps, points=args.points)
-    count = retarget_to_files(retargeter, source, args.out, formats, space)
-    print(f"retargeted {count} frames at {source.fps:g} fps in "
-          f"{time.perf_counter() - start:.1f} s; wrote {_written(args.out, formats, count)}")
+    set_target(retargeter, target_points, target_faces, args.target, space)
+
+    def open_at(first):
+        return open_source(args.source, space, fps=args.fps, points=args.points,
+                           seed=args.seed, start=first)
+
+    source = retarget_to_files(retargeter, open_at, args.out, formats, space,
+                               {"points": args.points, "seed": args.seed},
+                               resume=args.resume, overwrite=args.overwrite)
+    print(f"retargeted {source.count} frames at {source.fps:g} fps in "
+          f"{time.perf_counter() - start:.1f} s; wrote "
+          f"{_written(args.out, formats, source.count)}")
 
 
 def _render(args):
@@ -107,7 +161,10 @@ def _demo(args):
     print(f"demo: {metadata['description']}")
     out = Path(args.out)
     set_target(retargeter, target_points, target_faces, "the sample's target")
-    count = retarget_to_files(retargeter, source, out, FORMATS, CANONICAL)
+    # The demo's outputs are its own: a second demo replaces them.
+    count = retarget_to_files(retargeter, lambda first: load_sample(start=first)[0], out,
+                              FORMATS, CANONICAL, {"points": None, "seed": 0},
+                              overwrite=True).count
     clouds = load_sample()[0].frames                # a fresh pass over the source clouds
     render(out / "result.npz", out / "preview.png", source_points=clouds)
     print(f"retargeted {count} frames in {time.perf_counter() - start:.1f} s; wrote "
@@ -162,9 +219,19 @@ def build_parser():
     retarget.add_argument("--units", choices=tuple(UNITS), default="m",
                           help="length unit of the input and output files; .glb is always m")
     retarget.add_argument("--points", type=_positive_int, default=None,
-                          help="resample every source cloud to N points (random subset, fixed "
-                          "seed)")
+                          help="resample every source cloud to N points (a random subset, "
+                          "seeded)")
+    retarget.add_argument("--seed", type=int, default=0,
+                          help="seed of the --points subsets (default 0); each frame's subset "
+                          "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
+    again = retarget.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue an interrupted run in --out from its last checkpoint "
+                       "(same arguments); the result is the same as an uninterrupted run's")
+    again.add_argument("--overwrite", action="store_true",
+                       help="replace the files of an earlier run in --out (without it, a "
+                       "folder holding them is refused)")
     retarget.set_defaults(run=_retarget)
 
     preview = commands.add_parser("render", help="draw a result's source and target over time")
@@ -174,18 +241,48 @@ def build_parser():
     return parser
 
 
+def _print_warning(message, category, filename, lineno, file=None, line=None):
+    """Show an InputWarning as one ``minretarget: warning:`` line, others as Python does;
+    above the progress bar, if one is running."""
+    text = (f"minretarget: warning: {message}" if issubclass(category, InputWarning) else
+            warnings.formatwarning(message, category, filename, lineno, line).rstrip())
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        print(text, file=sys.stderr)
+    else:
+        tqdm.write(text, file=sys.stderr)
+
+
 def main(argv=None):
-    """Run the command line; returns the exit status (0 ok, 1 bad input, 3 missing extra)."""
+    """Run the command line; returns the exit status: 0 ok, 1 bad input (or an error of the
+    system, e.g. a full disk), 3 missing extra, 4 internal error, 130 interrupted (argparse
+    exits with 2 for bad arguments). Messages, never tracebacks, unless
+    MINRETARGET_TRACEBACK=1."""
     args = build_parser().parse_args(argv)
     try:
-        args.run(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", InputWarning)
+            warnings.showwarning = _print_warning
+            args.run(args)
     except MissingExtra as error:
         print(f"minretarget: {error}", file=sys.stderr)
         return 3
     except (ValueError, OSError) as error:
         print(f"minretarget: error: {error}", file=sys.stderr)
         return 1
+    except MemoryError:
+        print("minretarget: error: out of memory", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
-        print("minretarget: interrupted", file=sys.stderr)
+        resumable = args.command == "retarget"
+        print("minretarget: interrupted" + ("; the frames done are kept: add --resume to "
+                                            "continue" if resumable else ""), file=sys.stderr)
         return 130
+    except Exception as error:  # noqa: BLE001  (a bug: say so in one line, not a traceback)
+        if os.environ.get("MINRETARGET_TRACEBACK") == "1":
+            raise
+        print(f"minretarget: internal error: {type(error).__name__}: {error} (please report "
+              "it; MINRETARGET_TRACEBACK=1 shows where)", file=sys.stderr)
+        return 4
     return 0

@@ -18,9 +18,11 @@ _PARENTS = np.asarray(PARENTS, dtype=np.int64)
 def quaternion_to_matrix(quaternions):
     """(..., 4) quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices.
 
-    The quaternions need not be unit: the result is the rotation of q / |q|.
+    The quaternions need not be unit: the result is the rotation of q / |q|, for norms in
+    [1e-15, 1e15] (``check_quaternion_norms``).
     """
     q = as_float32_array(quaternions, "quaternions", (..., 4))
+    check_quaternion_norms(q, "quaternions")
     flat = np.ascontiguousarray(q.reshape(-1, 4))                   # (..., 4) -> (N, 4)
     out = np.empty((flat.shape[0], 3, 3), dtype=np.float32)
     _quaternion_to_matrix_kernel(flat, out)
@@ -49,6 +51,17 @@ def _quaternion_to_matrix_one(q, r):
     r[2, 0] = xz - wy
     r[2, 1] = yz + wx
     r[2, 2] = 1 - xx - yy
+
+
+def check_quaternion_norms(q, name):
+    """ValueError unless every (..., 4) quaternion's norm is in [1e-15, 1e15]: a zero one
+    is no rotation, and beyond that range 2 / |q|^2 under- or overflows in float32."""
+    norms = np.sqrt(np.sum(np.square(q, dtype=np.float64), axis=-1))          # (...,)
+    bad = ~((norms >= 1e-15) & (norms <= 1e15))
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{name} has a quaternion of norm {norms[index]:g} at index {index}; "
+                         "rotations need a norm in [1e-15, 1e15]")
 
 
 def matrix_to_quaternion(matrices):
@@ -108,6 +121,7 @@ def forward_kinematics(rotations, root, tpose_joints):
         global_rotations: (..., J, 3, 3) float32 joint rotations in world coordinates.
     """
     rotations = as_float32_array(rotations, "rotations", (..., NUM_JOINTS, 4))
+    check_quaternion_norms(rotations, "rotations")
     batch = rotations.shape[:-2]
     root = as_float32_array(root, "root", batch + (3,))
     tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (..., NUM_JOINTS, 3))

@@ -1,6 +1,6 @@
 """Writing a retargeted stream to files, frame by frame, in the formats asked for.
 
-    with open_writers(out_dir, ("ply", "glb"), target, count, fps, space) as write:
+    with open_writers(out_dir, ("ply", "glb"), target, count, fps, space, track) as write:
         for frame in frames:          # RetargetedFrame, canonical metres
             write(frame)
 
@@ -13,17 +13,18 @@ Formats (``FORMATS``), lengths in the user's units and axes (``space``) except g
                glTF fixes metres and +Y up, so it ignores ``space``.
     bvh        ``result.bvh``: the skeleton motion (``minretarget.skeletons.rig_to_bvh``).
 Across frames only joints, rotations, root and source joints are kept (J * 13 floats a
-frame), for npz, glb and bvh. Every file is written atomically: an interrupted run leaves no
-``result.*`` and only complete frame files.
+frame), in a file (``checkpoint.Track``), for npz, glb and bvh. Every file is written
+atomically: an interrupted run leaves no ``result.*`` and only complete frame files.
 """
 import contextlib
+import re
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import atomic_write
 from .bvh import write_bvh
-from .conventions import JOINT_NAMES, NUM_JOINTS, PARENTS
+from .conventions import JOINT_NAMES, PARENTS
 from .formats.glb import write_glb
 from .formats.mesh import write_mesh
 from .formats.npz import NpzWriter
@@ -48,29 +49,37 @@ def frame_name(index, suffix):
     return f"frame_{index:06d}.{suffix}"
 
 
-class _Track:
-    """The small per-frame arrays, kept for the writers that need the whole motion."""
+# The files a run writes (``checkpoint`` adds its own two), and the temporary names that
+# ``atomic_write`` gives them until they are complete.
+OUTPUT_NAME = re.compile(r"frame_\d{6,}\.(ply|obj)|result\.(npz|glb|bvh)"
+                         r"|checkpoint\.(npz|track)")
+_TEMPORARY_NAME = re.compile(r"\.(?P<name>.+)\.[^.]+\.tmp")
 
-    def __init__(self):
-        self.joints, self.rotations, self.root, self.source_joints = [], [], [], []
 
-    def append(self, frame):
-        self.joints.append(frame.joints)
-        self.rotations.append(frame.rotations)
-        self.root.append(frame.root)
-        self.source_joints.append(frame.source_joints)
+def previous_outputs(out_dir):
+    """Sorted names of the files in ``out_dir`` that a run writes (``OUTPUT_NAME``)."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return []
+    return sorted(p.name for p in out_dir.iterdir() if OUTPUT_NAME.fullmatch(p.name))
 
-    def stacked(self, name):
-        """(T, ...) float32 array of one field; (0, ...) before any frame."""
-        shapes = {"joints": (NUM_JOINTS, 3), "rotations": (NUM_JOINTS, 4), "root": (3,),
-                  "source_joints": (NUM_JOINTS, 3)}
-        values = getattr(self, name)
-        return np.stack(values) if values else np.empty((0,) + shapes[name], np.float32)
+
+def remove_outputs(out_dir, temporaries_only=False):
+    """Delete the files of ``previous_outputs`` (or only the temporaries of an interrupted
+    run's writes); other files in ``out_dir`` are left alone."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return
+    for path in out_dir.iterdir():
+        temporary = _TEMPORARY_NAME.fullmatch(path.name)
+        name = temporary.group("name") if temporary else None if temporaries_only else path.name
+        if name is not None and OUTPUT_NAME.fullmatch(name) and path.is_file():
+            path.unlink()
 
 
 @contextlib.contextmanager
-def _mesh_frames(out_dir, suffix, target, space):
-    index = 0
+def _mesh_frames(out_dir, suffix, target, space, start):
+    index = start
 
     def write(frame):
         nonlocal index
@@ -104,9 +113,11 @@ def npz_keys(target, fps, space, track):
 
 
 @contextlib.contextmanager
-def _npz(path, target, count, fps, space, track):
+def _npz(path, target, count, fps, space, track, past_vertices):
     with atomic_write(path) as file, NpzWriter(file) as archive:
         with archive.frames("vertices", (count, len(target.points), 3), np.float32) as vertices:
+            for posed in past_vertices:
+                vertices(from_canonical(posed, space))
             yield lambda frame: vertices(from_canonical(frame.vertices, space))
         for key, array in npz_keys(target, fps, space, track).items():
             archive.add(key, array)
@@ -129,30 +140,35 @@ def _bvh(path, target, fps, space, track):
 
 
 @contextlib.contextmanager
-def open_writers(out_dir, formats, target, count, fps, space):
+def open_writers(out_dir, formats, target, count, fps, space, track, past_vertices=()):
     """Open a writer per format in ``out_dir`` (module docstring).
 
     Args:
         out_dir: output folder, created if needed.
         formats: names from ``FORMATS``.
         target: ``retargeter.Target`` (canonical metres).
-        count: T, the number of frames that will be written (the npz header needs it).
+        count: T, the number of frames of the whole motion (the npz header needs it).
         fps: frames per second, for glb and bvh timing and the npz.
         space: ``units.Space`` of the outputs.
+        track: ``checkpoint.Track`` that keeps the motion's small arrays; it may already
+            hold the first frames (a resumed run), whose frame files exist.
+        past_vertices: the (V, 3) canonical vertices of those first frames, for the npz
+            (iterated only when npz is written).
     Yields:
-        ``write(frame)`` for each RetargetedFrame in order; the files that need the whole
-        motion are written when the block ends without error.
+        ``write(frame)`` for each further RetargetedFrame in order: its files, then its
+        track record; the files that need the whole motion are written when the block
+        ends without error.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    track = _Track()
     with contextlib.ExitStack() as stack:
-        writers = [track.append]
+        writers = []
         for name in formats:
             if name in ("ply", "obj"):
-                writer = _mesh_frames(out_dir, name, target, space)
+                writer = _mesh_frames(out_dir, name, target, space, track.count)
             elif name == "npz":
-                writer = _npz(out_dir / "result.npz", target, count, fps, space, track)
+                writer = _npz(out_dir / "result.npz", target, count, fps, space, track,
+                              past_vertices)
             elif name == "glb":
                 writer = _glb(out_dir / "result.glb", target, fps, track)
             elif name == "bvh":
@@ -160,6 +176,7 @@ def open_writers(out_dir, formats, target, count, fps, space):
             else:
                 raise ValueError(f"unknown output format {name!r}; choose from {FORMATS}")
             writers.append(stack.enter_context(writer))
+        writers.append(track.append)
 
         def write(frame):
             for writer in writers:

@@ -18,7 +18,7 @@ import numpy as np
 from .atomic import atomic_write
 from .conventions import PARENTS
 from .extras import require
-from .formats.npz import NpzFrames
+from .formats.npz import ARCHIVE_ERRORS, NpzFrames
 from .units import make_space, to_canonical
 
 AZIMUTH = 40.0                 # degrees about +Y from the front view
@@ -122,13 +122,17 @@ def render(result_path, out_path, source_points=None):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    with np.load(result_path, allow_pickle=False) as data:
-        missing = {"joints", "source_joints", "vertices", "fps", "units", "up_axis"} - set(data)
-        if missing:
-            raise ValueError(f"{result_path}: not a minretarget result (missing "
-                             f"{', '.join(sorted(missing))})")
-        result = {key: data[key] for key in ("joints", "source_joints", "fps", "units",
-                                             "up_axis")}
+    try:
+        with np.load(result_path, allow_pickle=False) as data:
+            missing = {"joints", "source_joints", "vertices", "fps", "units",
+                       "up_axis"} - set(data)
+            result = {key: data[key] for key in ("joints", "source_joints", "fps", "units",
+                                                 "up_axis") if key not in missing}
+    except ARCHIVE_ERRORS as error:
+        raise ValueError(f"{result_path}: not a readable .npz ({error})") from None
+    if missing:
+        raise ValueError(f"{result_path}: not a minretarget result (missing "
+                         f"{', '.join(sorted(missing))})")
     count = len(result["joints"])
     if count == 0:
         raise ValueError(f"{result_path}: holds no frames")

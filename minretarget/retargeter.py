@@ -13,8 +13,8 @@ from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import regress_joints
-from .smrm import retarget_step
-from .validation import as_float32_array, as_point_cloud
+from .smrm import check_state, retarget_step
+from .validation import as_float32_array, as_point_cloud, check_body
 from .weights import load_weights
 
 
@@ -35,15 +35,18 @@ class RetargetedFrame(NamedTuple):
 
 
 class Retargeter:
-    def __init__(self, weights):
+    def __init__(self, weights, warn=True):
+        """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
+        that looks like wrong units, a wrong up axis or (targets) not a T-pose."""
         self.weights = weights
+        self.warn = warn
         self.target = None
         self._state = None
 
     @classmethod
-    def from_weights(cls, path=None):
+    def from_weights(cls, path=None, warn=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
-        return cls(load_weights(path))
+        return cls(load_weights(path), warn)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -74,6 +77,8 @@ class Retargeter:
         skin_weights = as_float32_array(skin_weights, "skin_weights", (len(points), NUM_JOINTS))
         if (skin_weights < 0).any() or np.abs(skin_weights.sum(axis=1) - 1).max() > 1e-3:
             raise ValueError("skin_weights must be >= 0 and each row must sum to 1")
+        if self.warn:
+            check_body(points, "target points", tpose=True)
         self.target = Target(points, faces, tpose_joints, skin_weights)
         self.reset()
 
@@ -81,26 +86,53 @@ class Retargeter:
         """Forget the motion seen so far (the target stays)."""
         self._state = None
 
+    @property
+    def state(self):
+        """The recurrent state after the frames seen so far (``smrm.MotionState``), or None
+        at a stream's start. Save it to continue the stream later in another process: set
+        it back, on a retargeter with the same weights and target, and the next frames come
+        out exactly as if the stream had never stopped."""
+        return self._state
+
+    @state.setter
+    def state(self, state):
+        self._state = None if state is None else check_state(self.weights.smrm, state)
+
     def step(self, points):
         """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
         if self.target is None:
             raise RuntimeError("call set_target before step")
         points = as_point_cloud(points, "source points", MIN_POINTS)
-        source_joints = regress_joints(points, self.weights.skr)
-        return self.step_skeleton(source_joints)
+        if self.warn and self._state is None:
+            check_body(points, "source points, frame 0")
+        return self._step_joints(regress_joints(points, self.weights.skr))
 
     def step_skeleton(self, source_joints):
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR)."""
         if self.target is None:
             raise RuntimeError("call set_target before step_skeleton")
-        target = self.target
+        source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
+        if self.warn and self._state is None:
+            check_body(source_joints, "source joints, frame 0")
+        return self._step_joints(source_joints)
+
+    def _step_joints(self, source_joints):
         rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
-                                                     source_joints, target.tpose_joints)
+                                                     source_joints, self.target.tpose_joints)
+        vertices, joints = self.pose(rotations, root)
+        return RetargetedFrame(vertices, joints, rotations, root, source_joints)
+
+    def pose(self, rotations, root):
+        """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
+        vertices and (J, 3) joints, exactly as ``step`` does after SMRM."""
+        if self.target is None:
+            raise RuntimeError("call set_target before pose")
+        target = self.target
+        rotations = as_float32_array(rotations, "rotations", (NUM_JOINTS, 4))
+        root = as_float32_array(root, "root", (3,))
         joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
         transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
-        vertices = linear_blend_skinning(target.points, target.skin_weights, transforms)
-        return RetargetedFrame(vertices, joints, rotations, root,
-                               as_float32_array(source_joints, "source_joints", (None, 3)))
+        return linear_blend_skinning(target.points, target.skin_weights, transforms), joints
 
     def run(self, frames):
         """Retarget an iterable of (P, 3) source frames lazily, one RetargetedFrame each.

@@ -7,7 +7,7 @@ with those weights and applies the blend to the T-pose point.
 """
 import numpy as np
 
-from ._jit import kernel, parallel_kernel, prange
+from ._jit import kernel
 from .conventions import NUM_JOINTS
 from .nn import mlp
 from .validation import as_float32_array
@@ -70,9 +70,9 @@ def linear_blend_skinning(points, skin_weights, transforms):
     return out
 
 
-@parallel_kernel
+@kernel
 def _linear_blend_skinning_kernel(points, skin_weights, transforms, out):
-    for i in prange(points.shape[0]):
+    for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         out_x = out_y = out_z = np.float32(0.0)
         for k in range(transforms.shape[0]):

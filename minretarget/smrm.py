@@ -52,6 +52,26 @@ def initial_state(weights, first_joints):
     return MotionState(zeros, zeros.copy(), np.array(first_joints[0], dtype=np.float32), 0.0, 0)
 
 
+def check_state(weights, state):
+    """A MotionState checked against ``weights`` (e.g. one read back from a file): hidden
+    states (layers, H), a finite (3,) root, a count and a finite sum >= 0. Returns it with
+    C-contiguous float32 arrays; ValueError names the field."""
+    layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
+    if not isinstance(state, MotionState):
+        raise ValueError(f"state must be a MotionState, got {type(state).__name__}")
+    encoder = as_float32_array(state.encoder_hidden, "state.encoder_hidden", (layers, hidden))
+    decoder = as_float32_array(state.decoder_hidden, "state.decoder_hidden", (layers, hidden))
+    previous_root = as_float32_array(state.previous_root, "state.previous_root", (3,))
+    try:
+        leg_sum, frames = float(state.leg_length_sum), int(state.frames_seen)
+    except (TypeError, ValueError, OverflowError):                  # None, "x", inf
+        leg_sum, frames = np.nan, -1
+    if frames < 0 or frames != state.frames_seen or not 0 <= leg_sum < np.inf:
+        raise ValueError(f"state: frames_seen {state.frames_seen!r} and leg_length_sum "
+                         f"{state.leg_length_sum!r} must be a count and a finite sum >= 0")
+    return MotionState(encoder, decoder, previous_root, leg_sum, frames)
+
+
 def retarget_step(weights, state, source_joints, target_tpose):
     """Retarget one frame.
 

@@ -17,7 +17,6 @@ Frames are read lazily, one at a time, so memory does not grow with the number o
 """
 import json
 import re
-import zipfile
 from pathlib import Path
 from typing import Iterable, NamedTuple
 
@@ -26,7 +25,7 @@ import numpy as np
 from .bvh import read_bvh, resample
 from .conventions import FPS
 from .formats.mesh import POINT_SUFFIXES, read_points
-from .formats.npz import NpzFrames
+from .formats.npz import ARCHIVE_ERRORS, NpzFrames, load_npy
 from .skeletons import canonical_world
 from .units import to_canonical
 
@@ -40,7 +39,12 @@ class Source(NamedTuple):
     kind: str              # "points": (P, 3) clouds, or "skeleton": (J, 3) joints
     count: int             # T, the number of frames
     fps: float             # frames per second of ``frames``
-    frames: Iterable       # T arrays, canonical metres, float32; iterate once
+    frames: Iterable       # frames start..T-1 (``open_source``), canonical metres, float32
+    files: tuple = None    # a folder's T frame files, to name them in messages
+
+    def frame_name(self, index):
+        """How messages name frame ``index``: its file (folders), else "walk.npy: frame 3"."""
+        return str(self.files[index]) if self.files else f"{self.path}: frame {index}"
 
 
 def natural_key(name):
@@ -62,16 +66,18 @@ def _subsample(points, count, rng):
     return points[rng.choice(len(points), count, replace=False)]
 
 
-def open_source(path, space, fps=None, points=None, seed=0):
+def open_source(path, space, fps=None, points=None, seed=0, start=0):
     """Open a SOURCE (module docstring).
 
     Args:
         path: folder, ``.npy``, ``.npz``, ``.bvh`` or ``.bvh.gz``.
         space: the source's ``units.Space``.
         fps: the source's frame rate; None: 30 for point clouds, the header's for BVH.
-        points: resample every cloud to this many points (a random subset, the same for the
-            same seed and frame), or None to keep them all; not for BVH sources.
+        points: resample every cloud to this many points (a random subset seeded by
+            ``seed`` and the frame's index, so frame t is the same whatever frame a pass
+            starts from), or None to keep them all; not for BVH sources.
         seed: seed of that resampling.
+        start: the first frame to yield (a resumed run); ``count`` stays the total.
     Returns:
         Source; clouds keep their frame rate, BVH motions come out at 30 fps.
     Raises:
@@ -82,31 +88,36 @@ def open_source(path, space, fps=None, points=None, seed=0):
     if name.endswith((".bvh", ".bvh.gz")):
         if points is not None:
             raise ValueError(f"{path}: --points applies to point-cloud sources, not to BVH")
-        return _bvh_source(path, space, fps)
+        return _bvh_source(path, space, fps, start)
+    files = None
     if path.is_dir():
-        files = frame_files(path)
+        files = tuple(frame_files(path))
         if not files:
             raise ValueError(f"{path}: no point files ({', '.join(POINT_SUFFIXES)}) in folder")
-        raw = (read_points(f)[0] for f in files)
+        raw = (read_points(f)[0] for f in files[start:])
         count = len(files)
     elif name.endswith((".npy", ".npz")):
-        try:
-            array = (np.load(path, mmap_mode="r", allow_pickle=False) if name.endswith(".npy")
-                     else NpzFrames(path, _npz_key(path)))
-        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as error:
-            raise ValueError(f"{path}: cannot read an array of frames: {error}") from None
-        _check_frames_shape(path, array.shape)
-        raw, count = iter(array), len(array)
+        if name.endswith(".npy"):
+            array = load_npy(path, mmap_mode="r")       # frames are read as they are used
+        else:
+            try:
+                key = _npz_key(path)
+            except ARCHIVE_ERRORS as error:
+                raise ValueError(f"{path}: cannot read an array of frames: {error}") from None
+            array = NpzFrames(path, key)
+        _check_frames(path, array.shape, array.dtype)
+        raw = array[start:] if isinstance(array, np.ndarray) else array.frames(start)
+        count = len(array)
     else:
         raise ValueError(f"{path}: SOURCE must be a folder of frames, a .npy/.npz array of "
                          "frames or a .bvh file")
 
     def frames():
-        for index, cloud in enumerate(raw):
+        for index, cloud in enumerate(raw, start):
             rng = np.random.default_rng([seed, index])
             yield to_canonical(_subsample(np.asarray(cloud), points, rng), space)
 
-    return Source(str(path), "points", count, float(fps or FPS), frames())
+    return Source(str(path), "points", count, float(fps or FPS), frames(), files)
 
 
 def _npz_key(path):
@@ -121,17 +132,21 @@ def _npz_key(path):
                      f"{' or '.join(_NPZ_KEYS)}")
 
 
-def _check_frames_shape(path, shape):
-    if len(shape) != 3 or shape[2] != 3:
-        raise ValueError(f"{path}: expected an array of frames (T, P, 3), got shape {shape}")
+def _check_frames(path, shape, dtype):
+    if len(shape) != 3 or shape[2] != 3 or dtype.kind not in "fiu":
+        raise ValueError(f"{path}: expected an array of frames (T, P, 3) of numbers, got "
+                         f"{dtype} {shape}")
 
 
-def _bvh_source(path, space, fps):
+def _bvh_source(path, space, fps, start):
     motion = read_bvh(path)
-    motion = resample(motion, fps=FPS, source_fps=fps)
+    try:
+        motion = resample(motion, fps=FPS, source_fps=fps)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
     positions, _ = canonical_world(motion, source=str(path))                # (T, J, 3)
     joints = to_canonical(positions, space)
-    return Source(str(path), "skeleton", len(joints), float(FPS), iter(joints))
+    return Source(str(path), "skeleton", len(joints), float(FPS), iter(joints[start:]))
 
 
 def read_target(path, space):
@@ -140,9 +155,11 @@ def read_target(path, space):
     return to_canonical(points, space), faces
 
 
-def load_sample(path=SAMPLE):
+def load_sample(path=SAMPLE, start=0):
     """The demo's sample: a source clip of point clouds and a target mesh in T-pose.
 
+    Args:
+        path: the sample file; start: the first source frame to yield.
     Returns:
         source: Source of (P, 3) clouds, canonical metres.
         target_points: (V, 3) float32; target_faces: (F, 3) int64.
@@ -154,6 +171,6 @@ def load_sample(path=SAMPLE):
         fps = float(data["fps"])
         metadata = json.loads(str(data["metadata"]))
     clouds = NpzFrames(path, "source_points")
-    frames = (np.asarray(cloud, dtype=np.float32) for cloud in clouds)
+    frames = (np.asarray(cloud, dtype=np.float32) for cloud in clouds.frames(start))
     return (Source(str(path), "points", len(clouds), fps, frames), target_points, target_faces,
             metadata)

@@ -1,5 +1,14 @@
-"""Input checks shared by every public function: clear ValueErrors before any kernel runs."""
+"""Input checks shared by every public entry.
+
+Errors: clear ValueErrors for bad shapes, dtypes and values, before any kernel runs.
+Warnings (``InputWarning`` subclasses): valid input that is probably a mistake (units, up
+axis, pose), each with the way out. The command line prints them as ``minretarget: warning:``.
+"""
+import warnings
+
 import numpy as np
+
+from .units import CANONICAL, UNITS
 
 
 def as_float32_array(value, name, shape, finite=True):
@@ -39,3 +48,69 @@ def as_point_cloud(value, name, min_points):
     if points.shape[0] < min_points:
         raise ValueError(f"{name} has {points.shape[0]} points; at least {min_points} are needed")
     return points
+
+
+# ----------------------------------------------------------------------------- likely mistakes
+
+class InputWarning(UserWarning):
+    """Input that is valid but probably not what the user meant; the message says why and
+    what to do. Subclasses say which mistake."""
+
+
+class UnitsWarning(InputWarning):
+    """The body's size is not a person's in metres: the file is probably in cm or mm."""
+
+
+class UpAxisWarning(InputWarning):
+    """The body lies along Z instead of standing along +Y: the file is probably Z-up."""
+
+
+class TPoseWarning(InputWarning):
+    """The target's arms are far from horizontal: it is probably not in T-pose."""
+
+
+HUMAN_HEIGHT = (0.3, 3.0)    # metres: a toddler to a giant; outside it, suspect the units
+LYING_RATIO = 2.0            # Z extent over Y extent above which the body lies along Z
+# Arm span over height: about 1 in a T-pose, 0.77 with the arms 45 degrees down, 0.35 along
+# the body (shoulders 0.2 and arms 0.4 of the height).
+TPOSE_MIN_SPAN = 0.8
+_UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
+
+
+def check_body(points, name, space=CANONICAL, tpose=False):
+    """Warn about a body whose size or orientation suggests wrong units, up axis or pose.
+
+    Args:
+        points: (N, 3) canonical points or joints of one body (metres, +Y up), finite.
+        name: what they are, for the message, e.g. "target.ply" or "scans/: frame 0".
+        space: the ``units.Space`` the file was read with, so the advice names the option
+            to change (the Python API passes canonical data: the default).
+        tpose: also check that the arms are roughly horizontal (targets only).
+    Warns:
+        UnitsWarning, UpAxisWarning, TPoseWarning; each at most once per call.
+    """
+    extent = np.ptp(np.asarray(points, dtype=np.float64), axis=0)          # (3,) x, y, z
+    height = float(extent.max())
+    low, high = HUMAN_HEIGHT
+    if not low <= height <= high:
+        in_file = height / space.scale
+        guesses = [u for u, scale in UNITS.items() if u != space.units
+                   and low <= in_file * scale <= high]
+        advice = (f"looks like {_UNIT_NAMES[guesses[0]]} (use --units {guesses[0]}, or "
+                  "scale the points to metres)" if guesses else "check its units")
+        size = f"{height:.4g} m" + (f" ({in_file:.4g} {space.units})" if space.units != "m"
+                                    else "")
+        warnings.warn(f"{name}: the body is {size} tall (its largest extent), not a "
+                      f"person's {low:g} to {high:g} m: {advice}", UnitsWarning, stacklevel=3)
+    if extent[2] > LYING_RATIO * extent[1]:
+        other = "z" if space.up_axis == "y" else "y"
+        warnings.warn(f"{name}: the body lies along Z ({extent[2]:.4g} m along Z, "
+                      f"{extent[1]:.4g} m along Y, up axis {space.up_axis.upper()}): its up "
+                      f"axis looks like {other.upper()} (use --up-axis {other})",
+                      UpAxisWarning, stacklevel=3)
+    elif tpose and extent[0] < TPOSE_MIN_SPAN * extent[1]:
+        warnings.warn(f"{name}: the arms look far from horizontal: the body is "
+                      f"{extent[0]:.4g} m wide (X) for {extent[1]:.4g} m tall (Y), a ratio of "
+                      f"{extent[0] / extent[1]:.2f} where a T-pose has about 1: the target "
+                      "should be in T-pose (arms horizontal, facing +Z, left hand toward +X)",
+                      TPoseWarning, stacklevel=3)

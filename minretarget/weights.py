@@ -7,9 +7,16 @@ stored (in, out), the layout the kernels multiply with. Besides the arrays:
     config           JSON string of minretarget.config.ModelConfig
     metadata         JSON string: free-form provenance (recipe, data, commit)
 Arrays may be stored as float16 or float32; they are always float32 in memory.
+
+The default weights shipped in ``data/`` are verified at load against the SHA-256 recorded
+next to them (``default_weights.sha256``, the ``sha256sum`` format), so a damaged or swapped
+file is refused. After replacing them, record the new checksum:
+
+    python -m minretarget.checksum
 """
+import hashlib
+import io
 import json
-import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -17,6 +24,7 @@ import numpy as np
 
 from .atomic import atomic_write
 from .config import ModelConfig
+from .formats.npz import load_npz
 from .nn import MLP, Dense
 from .skr import PointNetWeights, SKRWeights
 from .smrm import GRULayer, SMRMWeights
@@ -160,12 +168,60 @@ def load_weights(path=None):
     path = Path(DEFAULT_WEIGHTS if path is None else path)
     if not path.is_file():
         raise FileNotFoundError(f"weights file not found: {path}")
+    if path.resolve() != Path(DEFAULT_WEIGHTS).resolve():
+        return _load_npz(path, path)
+    data = path.read_bytes()                  # checked and loaded from the same bytes
+    verify_checksum(path, hashlib.sha256(data).hexdigest())
+    return _load_npz(io.BytesIO(data), path)
+
+
+def _load_npz(file, path):
+    return weights_from_arrays(load_npz(file, path), source=str(path))
+
+
+def checksum_path(path):
+    """Where the SHA-256 of a shipped weights file is recorded: ``<name>.sha256`` beside it."""
+    return Path(path).with_suffix(".sha256")
+
+
+def file_sha256(path):
+    """Hex SHA-256 of a file's bytes, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def verify_checksum(path, actual=None):
+    """Raise ValueError unless ``path`` (or its bytes' hex SHA-256 ``actual``) matches the
+    SHA-256 recorded in ``checksum_path(path)``."""
+    record = checksum_path(path)
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {key: npz[key] for key in npz.files}
-    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as error:
-        raise ValueError(f"{path}: not a readable weights .npz ({error})") from None
-    return weights_from_arrays(arrays, source=str(path))
+        expected = record.read_text(encoding="ascii").split()[0].lower()
+    except (OSError, UnicodeDecodeError, IndexError):
+        raise ValueError(f"{path}: no readable recorded checksum ({record}); if these are "
+                         "the intended default weights, record it: python -m "
+                         "minretarget.checksum") from None
+    actual = file_sha256(path) if actual is None else actual
+    if actual != expected:
+        raise ValueError(f"{path}: SHA-256 {actual} differs from the recorded {expected} "
+                         f"({record}): the file is damaged or was replaced; reinstall "
+                         "minretarget, or record the new file's checksum with python -m "
+                         "minretarget.checksum")
+
+
+def record_checksum(path=None):
+    """Check that ``path`` (None: the default weights) loads, then write its SHA-256 to
+    ``checksum_path(path)`` in the ``sha256sum`` format. Returns the hex digest."""
+    path = Path(DEFAULT_WEIGHTS if path is None else path)
+    if not path.is_file():
+        raise FileNotFoundError(f"weights file not found: {path}")
+    _load_npz(path, path)
+    digest = file_sha256(path)
+    with atomic_write(checksum_path(path)) as file:
+        file.write(f"{digest}  {path.name}\n".encode("ascii"))
+    return digest
 
 
 def save_weights(path, weights, dtype=np.float32):
@@ -174,3 +230,4 @@ def save_weights(path, weights, dtype=np.float32):
               for key, value in flatten_weights(weights).items()}
     with atomic_write(path) as file:
         np.savez(file, **arrays)
+

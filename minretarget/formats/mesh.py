@@ -11,6 +11,7 @@ import numpy as np
 
 from ..atomic import atomic_write
 from ..extras import require
+from .npz import load_npy
 
 POINT_SUFFIXES = (".ply", ".obj", ".xyz", ".npy")
 MESH_SUFFIXES = (".ply", ".obj")
@@ -24,48 +25,72 @@ def read_points(path):
             further columns, e.g. normals, are ignored; ``#`` starts a comment) or an ``.npy``
             (N, 3) array.
     Returns:
-        points: (N, 3) float32, the file's units and axes.
-        faces: (F, 3) int64 triangles (polygons split by trimesh), or None for a point cloud.
+        points: (N, 3) float32, finite, the file's units and axes.
+        faces: (F, 3) int64 triangles (polygons split by trimesh) indexing ``points``, or
+            None for a point cloud.
     Raises:
-        ValueError naming the file: unknown suffix, unreadable content, not (N, 3).
+        ValueError naming the file: unknown suffix, no such file, unreadable or damaged
+        content, not (N, 3) numbers, a non-finite value, a face index out of range.
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    if suffix not in POINT_SUFFIXES:
+        raise ValueError(f"{path}: unknown point file type {suffix!r}; expected one of "
+                         f"{', '.join(POINT_SUFFIXES)}")
+    if not path.is_file():
+        raise ValueError(f"{path}: {'not a file' if path.exists() else 'no such file'}")
     faces = None
-    try:
-        if suffix in MESH_SUFFIXES:
-            points, faces = _read_trimesh(path, suffix)
-        elif suffix == ".xyz":
-            points = np.loadtxt(path, usecols=(0, 1, 2), ndmin=2, comments="#")
-        elif suffix == ".npy":
-            points = np.load(path, allow_pickle=False)
-        else:
-            raise ValueError(f"unknown point file type {suffix!r}; expected one of "
-                             f"{', '.join(POINT_SUFFIXES)}")
-    except (ValueError, OSError, EOFError, IndexError, KeyError) as error:
-        raise ValueError(f"{path}: cannot read points: {error}") from None
+    if suffix in MESH_SUFFIXES:
+        points, faces = _read_trimesh(path, suffix)
+    elif suffix == ".npy":
+        points = load_npy(path)
+    else:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)    # "input contained no data"
+                points = np.loadtxt(path, usecols=(0, 1, 2), ndmin=2, comments="#")
+        except (ValueError, OSError, IndexError) as error:
+            raise ValueError(f"{path}: cannot read points: {error}") from None
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind not in "fiu":
         raise ValueError(f"{path}: expected (N, 3) numeric points, got {points.dtype} "
                          f"{points.shape}")
-    return np.ascontiguousarray(points, dtype=np.float32), faces
+    with np.errstate(over="ignore"):        # beyond float32's range: inf, refused just below
+        points = np.ascontiguousarray(points, dtype=np.float32)
+    if not np.isfinite(points).all():
+        row = int(np.argwhere(~np.isfinite(points))[0, 0])
+        raise ValueError(f"{path}: point {row} is not finite (or too large for float32): "
+                         f"{points[row].tolist()}")
+    if faces is not None:
+        outside = faces[(faces < 0) | (faces >= len(points))]
+        if outside.size:
+            raise ValueError(f"{path}: a face refers to vertex {int(outside[0])}; the file "
+                             f"has {len(points)} vertices")
+    return points, faces
 
 
 def _read_trimesh(path, suffix):
     trimesh = require("trimesh", f"reading {suffix} files")
-    with warnings.catch_warnings():
-        # maintain_order makes trimesh's OBJ texture code warn about absent UVs; harmless.
-        warnings.simplefilter("ignore", RuntimeWarning)
-        loaded = trimesh.load(path, file_type=suffix[1:], process=False, maintain_order=True)
-    if isinstance(loaded, trimesh.Scene):
-        geometries = list(loaded.geometry.values())
-        if len(geometries) != 1:
-            raise ValueError(f"holds {len(geometries)} objects; expected one mesh or point cloud")
-        loaded = geometries[0]
-    faces = getattr(loaded, "faces", None)
-    if faces is not None and len(faces) == 0:
-        faces = None
-    return np.asarray(loaded.vertices), None if faces is None else np.asarray(faces, np.int64)
+    try:
+        with warnings.catch_warnings():
+            # maintain_order makes trimesh's OBJ texture code warn about absent UVs; harmless.
+            warnings.simplefilter("ignore", RuntimeWarning)
+            loaded = trimesh.load(path, file_type=suffix[1:], process=False,
+                                  maintain_order=True)
+        if isinstance(loaded, trimesh.Scene):
+            geometries = list(loaded.geometry.values())
+            if len(geometries) != 1:
+                raise ValueError(f"holds {len(geometries)} objects; expected one mesh or "
+                                 "point cloud")
+            loaded = geometries[0]
+        faces = getattr(loaded, "faces", None)
+        faces = None if faces is None or len(faces) == 0 else np.asarray(faces, np.int64)
+        return np.asarray(loaded.vertices), faces
+    except Exception as error:  # noqa: BLE001
+        # trimesh's readers fail on damaged files with many exception types (found by
+        # fuzzing: UnboundLocalError, TypeError, OverflowError, ...): one clear error instead.
+        raise ValueError(f"{path}: cannot read points: {type(error).__name__}: "
+                         f"{error}") from None
 
 
 def mesh_bytes(vertices, faces, file_type):

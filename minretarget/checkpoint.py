@@ -1,0 +1,215 @@
+"""Resuming an interrupted ``minretarget retarget``: the run's state, kept beside its outputs.
+
+Files in the output folder while a run goes on (removed when it completes):
+    checkpoint.npz    replaced atomically at the start, every ``CHECKPOINT_EVERY`` frames
+                      and at Ctrl-C: ``frames_done``; the SMRM state after those frames
+                      (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
+                      ``previous_root``, ``leg_length_sum`` float64, ``frames_seen``); ``run``,
+                      JSON of the inputs and options a resumed run must repeat (``run_record``).
+                      Plain arrays: it loads without pickle.
+    checkpoint.track  the small per-frame arrays, one float32 record a frame, appended as
+                      frames are written: joints (J, 3), rotations (J, 4), root (3,) and
+                      source_joints (J, 3), canonical metres. Only the first ``frames_done``
+                      records count; the writers of ``result.npz``, ``.glb`` and ``.bvh`` read
+                      the motion back from here, so memory stays flat in the stream's length.
+Order of writes: a frame's files, then its record; records reach the disk (fsync) before a
+checkpoint counts them. After any interruption, Ctrl-C, kill or power loss, every frame that
+the checkpoint counts is complete on disk; a resumed run starts after it with the saved
+state and recomputes the rest exactly (the frames a kill caught after the last checkpoint
+are written again, with the same bytes).
+"""
+import contextlib
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_write
+from .conventions import NUM_JOINTS
+from .formats.npz import ARCHIVE_ERRORS, load_npz
+from .outputs import previous_outputs, remove_outputs
+from .smrm import MotionState, check_state
+from .weights import flatten_weights
+
+CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
+CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
+VERSION = 1
+# The fields of a track record, in order, with their shapes.
+FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
+          ("source_joints", (NUM_JOINTS, 3)))
+_SIZES = [int(np.prod(shape)) for _, shape in FIELDS]
+RECORD = sum(_SIZES)         # float32 values per frame
+
+
+class Track:
+    """The per-frame arrays of a run in ``checkpoint.track``: appended, then read back.
+
+    Opening keeps the first ``count`` records of an existing file and drops the rest.
+    """
+
+    def __init__(self, path, count=0):
+        self.path = Path(path)
+        size = self.path.stat().st_size if count and self.path.is_file() else 0
+        if size < count * RECORD * 4:
+            raise ValueError(f"{self.path}: holds fewer than the {count} frames its "
+                             "checkpoint counts; the output cannot be resumed (--overwrite "
+                             "starts again)")
+        self.file = open(self.path, "r+b" if count else "w+b")
+        self.file.truncate(count * RECORD * 4)
+        self.file.seek(0, os.SEEK_END)
+        self.count = count
+
+    def append(self, frame):
+        """Add a RetargetedFrame's joints, rotations, root and source joints."""
+        record = np.concatenate([np.asarray(getattr(frame, name), np.float32).ravel()
+                                 for name, _ in FIELDS])
+        self.file.write(record.tobytes())
+        self.count += 1
+
+    def sync(self):
+        """Put every appended record on the disk."""
+        self.file.flush()
+        os.fsync(self.file.fileno())
+
+    def records(self):
+        """(T, RECORD) float32, every record so far (a read-only map of the file)."""
+        self.file.flush()
+        if self.count == 0:
+            return np.empty((0, RECORD), np.float32)
+        return np.memmap(self.path, np.float32, "r", shape=(self.count, RECORD))
+
+    def stacked(self, name):
+        """(T, ...) float32 array of one field over every record so far."""
+        index = [n for n, _ in FIELDS].index(name)
+        start = sum(_SIZES[:index])
+        columns = self.records()[:, start:start + _SIZES[index]]
+        return np.array(columns).reshape((-1,) + FIELDS[index][1])
+
+    def frames(self):
+        """{field: array} of each record so far, read one at a time."""
+        return (_split(record) for record in self.records())
+
+    def close(self):
+        self.file.close()
+
+
+def _split(record):
+    fields, start = {}, 0
+    for (name, shape), size in zip(FIELDS, _SIZES):
+        fields[name] = np.array(record[start:start + size]).reshape(shape)
+        start += size
+    return fields
+
+
+def _digest(arrays):
+    """Hex SHA-256 of a sequence of arrays (their dtype, shape and bytes) and None's."""
+    digest = hashlib.sha256()
+    for array in arrays:
+        if array is None:
+            digest.update(b"none")
+        else:
+            array = np.ascontiguousarray(array)
+            digest.update(f"{array.dtype.str}{array.shape}".encode())
+            digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def run_record(source, target, weights, formats, space, points, seed):
+    """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
+    kind, frame count and rate; its content is assumed unchanged), the target and weights
+    (SHA-256 of their arrays), the formats, units, up axis and the resampling."""
+    return {"version": VERSION, "source": str(Path(source.path).resolve()),
+            "source_kind": source.kind, "frames": source.count, "fps": source.fps,
+            "target_sha256": _digest(target),
+            "weights_sha256": _digest(flatten_weights(weights).values()),
+            "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
+            "points": points, "seed": seed}
+
+
+def save_checkpoint(out_dir, run, state, frames_done, track):
+    """Record that ``frames_done`` frames are complete, with the SMRM ``state`` after them
+    (None before the first); their track records are synced to disk first."""
+    track.sync()
+    arrays = {"version": np.array(VERSION), "run": np.array(json.dumps(run, sort_keys=True)),
+              "frames_done": np.array(frames_done, np.int64)}
+    if state is not None:
+        arrays.update(encoder_hidden=state.encoder_hidden, decoder_hidden=state.decoder_hidden,
+                      previous_root=state.previous_root,
+                      leg_length_sum=np.array(state.leg_length_sum, np.float64),
+                      frames_seen=np.array(state.frames_seen, np.int64))
+    with atomic_write(Path(out_dir) / CHECKPOINT) as file:
+        np.savez(file, **arrays)
+
+
+def load_checkpoint(out_dir, run, weights):
+    """The checkpoint in ``out_dir``: (frames_done, MotionState or None).
+
+    Raises:
+        ValueError naming the file: unreadable, or made by a run with other inputs or
+        options (named, with both values), or a state that does not fit the weights.
+    """
+    path = Path(out_dir) / CHECKPOINT
+    try:
+        arrays = load_npz(path)
+        saved = json.loads(str(arrays["run"]))
+        frames_done = int(arrays["frames_done"])
+        if not isinstance(saved, dict):
+            raise ValueError(f"its run record is {type(saved).__name__}, not a dict")
+    except ARCHIVE_ERRORS as error:
+        raise ValueError(f"{path}: unreadable checkpoint ({error}); the output cannot be "
+                         "resumed (--overwrite starts again)") from None
+    differences = [f"{key} {saved.get(key)!r} then, {value!r} now" for key, value in run.items()
+                   if saved.get(key) != value]
+    if differences:
+        raise ValueError(f"{path}: this output was started with other inputs or options "
+                         f"({'; '.join(differences)}); resume with the same ones, or use "
+                         "--overwrite to start again")
+    if not 0 <= frames_done <= run["frames"]:
+        raise ValueError(f"{path}: frames_done {frames_done} is not in [0, {run['frames']}]")
+    if frames_done == 0:
+        return 0, None
+    try:
+        state = MotionState(arrays["encoder_hidden"], arrays["decoder_hidden"],
+                            arrays["previous_root"], float(arrays["leg_length_sum"]),
+                            int(arrays["frames_seen"]))
+        state = check_state(weights.smrm, state)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{path}: bad saved state: {error}") from None
+    if state.frames_seen != frames_done:
+        raise ValueError(f"{path}: its state has seen {state.frames_seen} frames, not "
+                         f"{frames_done}")
+    return frames_done, state
+
+
+def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
+    """Make ``out_dir`` ready for a run; returns (frames_done, state) to start from.
+
+    A fresh run refuses a folder that holds a run's files (frames, results, a checkpoint),
+    so that nothing is lost by a repeated command: ``overwrite`` deletes them first (only
+    them; other files stay). ``resume`` continues the run of the checkpoint there
+    (``load_checkpoint``), or starts one if the folder holds none of a run's files. Either
+    way the temporaries of writes that a kill interrupted are removed.
+    """
+    out_dir = Path(out_dir)
+    previous = previous_outputs(out_dir)
+    if overwrite:
+        remove_outputs(out_dir)
+    elif previous and not (resume and CHECKPOINT in previous):
+        listed = ", ".join(previous[:3]) + (", ..." if len(previous) > 3 else "")
+        if CHECKPOINT in previous:
+            raise ValueError(f"{out_dir}: holds an interrupted run ({listed}): add --resume "
+                             "to continue it, or --overwrite to start again")
+        raise ValueError(f"{out_dir}: already holds the files of a finished run ({listed}): "
+                         "choose another --out, or add --overwrite to replace them"
+                         + (" (there is no checkpoint to --resume)" if resume else ""))
+    remove_outputs(out_dir, temporaries_only=True)
+    return load_checkpoint(out_dir, run, weights) if resume and previous else (0, None)
+
+
+def remove_checkpoint(out_dir):
+    """Delete the checkpoint files (the run is complete)."""
+    for name in (CHECKPOINT, TRACK):
+        with contextlib.suppress(FileNotFoundError):
+            (Path(out_dir) / name).unlink()
