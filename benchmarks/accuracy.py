@@ -50,8 +50,7 @@ def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
     """(T, J, 4), (T, 3) on a rig -> joints (T, J, 3), vertices (T, V, 3)."""
     joints, global_rotations = forward_kinematics(rotations, root, tpose_joints)
     transforms = skinning_transforms(joints, global_rotations, tpose_joints)
-    vertices = np.stack([linear_blend_skinning(points, skin_weights, t) for t in transforms])
-    return joints, vertices
+    return joints, linear_blend_skinning(points, skin_weights, transforms)
 
 
 def stream(retargeter, source_joints):

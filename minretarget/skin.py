@@ -52,33 +52,43 @@ def _skinning_weights_kernel(points, tpose_joints, weights):
     return logits
 
 
-def linear_blend_skinning(points, skin_weights, transforms):
-    """Pose T-pose points with per-joint affine maps.
+def linear_blend_skinning(points, skin_weights, transforms, chunk=32):
+    """Pose T-pose points with per-joint affine maps, for one frame or many.
 
     Args:
         points: (V, 3) float32 T-pose points, metres.
         skin_weights: (V, J) float32 skinning weights.
-        transforms: (J, 3, 4) float32 T-pose -> posed maps (``kinematics.skinning_transforms``).
+        transforms: (J, 3, 4) or (T, J, 3, 4) float32 T-pose -> posed maps
+            (``kinematics.skinning_transforms``).
+        chunk: frames per kernel call, bounding its (V, chunk * 12) blend in memory.
     Returns:
-        (V, 3) float32 posed points, metres; row i stays point i.
+        (V, 3) or (T, V, 3) float32 posed points, metres; row i stays point i.
     """
     points = as_float32_array(points, "points", (None, 3))
     skin_weights = as_float32_array(skin_weights, "skin_weights", (points.shape[0], None))
-    transforms = as_float32_array(transforms, "transforms", (skin_weights.shape[1], 3, 4))
-    out = np.empty_like(points)
-    _linear_blend_skinning_kernel(points, skin_weights, transforms, out)
-    return out
+    transforms = as_float32_array(transforms, "transforms", (..., skin_weights.shape[1], 3, 4))
+    if transforms.ndim not in (3, 4):
+        raise ValueError(f"transforms must have shape (J, 3, 4) or (T, J, 3, 4), got "
+                         f"{transforms.shape}")
+    frames = transforms.reshape(-1, skin_weights.shape[1], 12)          # (T, J, 12)
+    out = np.empty((len(frames),) + points.shape, dtype=np.float32)
+    for start in range(0, len(frames), chunk):
+        # (J, t * 12): every frame's maps side by side, so one matrix product blends them all
+        maps = np.ascontiguousarray(frames[start:start + chunk].transpose(1, 0, 2))
+        _linear_blend_skinning_kernel(points, skin_weights, maps.reshape(len(maps), -1),
+                                      out[start:start + chunk])
+    return out if transforms.ndim == 4 else out[0]
 
 
 @kernel
-def _linear_blend_skinning_kernel(points, skin_weights, transforms, out):
+def _linear_blend_skinning_kernel(points, skin_weights, maps, out):
+    """maps (J, T*12) -> out (T, V, 3). The blend of the maps is a matrix product (BLAS);
+    then each point goes through its own blended 3 x 4 map."""
+    blended = np.dot(skin_weights, maps)                                 # (V, T*12)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        out_x = out_y = out_z = np.float32(0.0)
-        for k in range(transforms.shape[0]):
-            w = skin_weights[i, k]
-            m = transforms[k]
-            out_x += w * (m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3])
-            out_y += w * (m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3])
-            out_z += w * (m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3])
-        out[i, 0], out[i, 1], out[i, 2] = out_x, out_y, out_z
+        for t in range(out.shape[0]):
+            m = blended[i, 12 * t:12 * t + 12]                           # row-major 3 x 4
+            out[t, i, 0] = m[0] * x + m[1] * y + m[2] * z + m[3]
+            out[t, i, 1] = m[4] * x + m[5] * y + m[6] * z + m[7]
+            out[t, i, 2] = m[8] * x + m[9] * y + m[10] * z + m[11]

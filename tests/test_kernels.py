@@ -42,10 +42,13 @@ def test_skr_is_translation_equivariant_and_order_invariant(tiny_weights):
 
 
 def test_skr_batch_equals_per_item_calls(tiny_weights):
-    batch = np.random.default_rng(3).normal(size=(4, 128, 3)).astype(np.float32)
-    joints = regress_joints(batch, tiny_weights.skr)
-    for b in range(4):
-        np.testing.assert_array_equal(joints[b], regress_joints(batch[b], tiny_weights.skr))
+    """Clouds batched into one product per layer (in chunks) give each cloud's own joints, up
+    to float32 rounding (BLAS sums a larger product in another order)."""
+    batch = np.random.default_rng(3).normal(size=(5, 128, 3)).astype(np.float32)
+    joints = regress_joints(batch, tiny_weights.skr, chunk_points=256)     # chunks of 2 clouds
+    for b in range(5):
+        np.testing.assert_allclose(joints[b], regress_joints(batch[b], tiny_weights.skr),
+                                   atol=1e-6)
 
 
 def test_gru_layer_step_matches_twin(tiny_weights):
@@ -126,6 +129,19 @@ def test_lbs_matches_twin():
     transforms = skinning_transforms(joints, rotations, tpose)
     np.testing.assert_allclose(linear_blend_skinning(points, weights, transforms),
                                twins.linear_blend_skinning(points, weights, transforms), atol=1e-5)
+
+
+def test_lbs_of_many_frames_is_each_frame_posed_alone():
+    """(T, J, 3, 4) over several chunks equals T single-frame twins."""
+    rng = np.random.default_rng(11)
+    points = rng.normal(size=(300, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(NUM_JOINTS), size=300).astype(np.float32)
+    transforms = rng.normal(size=(7, NUM_JOINTS, 3, 4)).astype(np.float32)
+    posed = linear_blend_skinning(points, weights, transforms, chunk=3)
+    assert posed.shape == (7, 300, 3)
+    for frame, maps in zip(posed, transforms):
+        np.testing.assert_allclose(frame, twins.linear_blend_skinning(points, weights, maps),
+                                   atol=1e-5)
 
 
 def test_lbs_with_identity_transforms_returns_its_input():

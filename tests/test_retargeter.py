@@ -33,6 +33,23 @@ def test_run_equals_step_by_step_and_restarts_the_stream(retargeter, tiny_stream
     np.testing.assert_array_equal(np.stack(first), np.stack(again))
 
 
+def test_retarget_sequence_equals_the_stream_and_can_continue(retargeter, tiny_stream):
+    """The batched offline path gives the online result (to float32 rounding) and leaves the
+    state after its last frame, so streaming picks up where it ended."""
+    sources = np.stack([points[:100] for points in tiny_stream[1][:11]])   # one P for all
+    streamed = list(retargeter.run(sources))
+    retargeter.reset()
+    batched = retargeter.retarget_sequence(sources[:10], chunk=4)
+    for field in ("vertices", "joints", "rotations", "root", "source_joints"):
+        np.testing.assert_allclose(getattr(batched, field),
+                                   np.stack([getattr(f, field) for f in streamed[:10]]),
+                                   atol=2e-5, err_msg=field)
+    np.testing.assert_allclose(retargeter.step(sources[10]).vertices, streamed[10].vertices,
+                               atol=2e-5)
+    with pytest.raises(ValueError, match="non-finite"):
+        retargeter.retarget_sequence(np.full((2, 100, 3), np.nan))
+
+
 def test_state_carries_across_frames(retargeter, tiny_stream):
     """The same frame gives a different result after other frames than at a stream's start."""
     sources = tiny_stream[1]

@@ -107,6 +107,24 @@ def test_resume_continues_to_the_same_result(run, tmp_path):
                                for row, r in zip(whole["rows"], resumed["rows"])]
 
 
+def test_init_trains_listed_stages_and_keeps_the_others(run, tmp_path):
+    """--init: SMRM fine-tuned from an exported file, SKR and SKIN carried over exactly."""
+    start = run / "run" / "weights.npz"
+    main(["smrm", "--init", str(start), "--recipe", str(run / "tiny.json"), "--data", str(run),
+          "--out", str(tmp_path / "tuned"), "--threads", "1"])
+    before = np.load(start)
+    after = np.load(tmp_path / "tuned" / "weights.npz")
+    assert sorted(before.files) == sorted(after.files)
+    for key in before.files:
+        if key.startswith(("skr.", "skin.")):
+            np.testing.assert_allclose(after[key], before[key], rtol=1e-6, atol=1e-7,
+                                       err_msg=key)
+    assert any(not np.array_equal(after[k], before[k]) for k in before.files
+               if k.startswith("smrm."))
+    metadata = json.loads(str(after["metadata"]))
+    assert metadata["init"]["recipe"]["name"] == "tiny"
+
+
 def test_recipes_load_and_reject_unknown_keys(tmp_path):
     assert load_recipe("paper").model.skr_point_widths == (64, 128, 1024)
     assert load_recipe("cpu").name == "cpu"

@@ -1,7 +1,9 @@
-"""Export the torch reference to the runtime's weights file (minretarget.weights).
+"""Export the torch reference to the runtime's weights file (minretarget.weights), and back.
 
 Batch norm (eval statistics) is folded into the preceding linear layer, and every linear
-weight is transposed to the runtime's (in, out) layout.
+weight is transposed to the runtime's (in, out) layout. ``import_weights`` goes the other way,
+so training can start from an exported file (the shipped weights, say): its batch norms come
+back folded, as ``nn.Identity``.
 """
 import numpy as np
 import torch
@@ -20,7 +22,7 @@ def _dense(linear, batch_norm=None):
     """nn.Linear or 1x1 nn.Conv1d (+ BatchNorm1d in eval mode) -> Dense (in, out)."""
     weight = linear.weight.detach().reshape(linear.weight.shape[0], -1).double()  # (out, in)
     bias = linear.bias.detach().double()
-    if batch_norm is not None:
+    if isinstance(batch_norm, torch.nn.BatchNorm1d):   # an imported model has Identity here
         scale = batch_norm.weight.double() / torch.sqrt(batch_norm.running_var.double()
                                                         + batch_norm.eps)
         weight = weight * scale[:, None]
@@ -36,6 +38,7 @@ def _point_layers(point_layers):
 def _head(head):
     """skr.Head -> MLP: hidden is [Linear, BatchNorm1d, ReLU]* (+ Dropout)."""
     modules = [m for m in head.hidden if not isinstance(m, (torch.nn.ReLU, torch.nn.Dropout))]
+    # [Linear, BatchNorm1d or Identity] per hidden layer
     hidden = tuple(_dense(modules[i], modules[i + 1]) for i in range(0, len(modules), 2))
     return MLP(hidden, _dense(head.output))
 
@@ -71,3 +74,58 @@ def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32):
     """Write the three torch modules as one runtime weights file at ``path``."""
     save_weights(path, runtime_weights(skr, smrm, skin, metadata), dtype=dtype)
 
+
+
+# ----------------------------------------------------------------------------- import
+
+def _set_dense(linear, dense):
+    """Dense (in, out) -> nn.Linear or 1x1 nn.Conv1d weights (out, in[, 1])."""
+    with torch.no_grad():
+        linear.weight.copy_(torch.from_numpy(dense.weight.T.copy()).view_as(linear.weight))
+        linear.bias.copy_(torch.from_numpy(dense.bias))
+
+
+def _import_point_layers(point_layers, denses):
+    for layer, dense in zip(point_layers.layers, denses, strict=True):
+        _set_dense(layer[0], dense)
+        layer[1] = torch.nn.Identity()
+
+
+def _import_head(head, mlp):
+    linears = [i for i, m in enumerate(head.hidden) if isinstance(m, torch.nn.Linear)]
+    for i, dense in zip(linears, mlp.hidden, strict=True):
+        _set_dense(head.hidden[i], dense)
+        head.hidden[i + 1] = torch.nn.Identity()
+    _set_dense(head.output, mlp.output)
+
+
+def import_weights(weights, skr, smrm, skin):
+    """Load runtime Weights into the torch modules, in place (their config must match).
+
+    Folded batch norms become ``nn.Identity``, so the imported SKR computes exactly what
+    the file does and trains on as a network without batch norm.
+    """
+    if smrm.config != weights.config:
+        raise ValueError(f"the weights' config {weights.config} is not the modules' "
+                         f"{smrm.config}")
+    for net, runtime in ((skr.input_transform, weights.skr.input_transform),
+                         (skr.feature_transform, weights.skr.feature_transform)):
+        _import_point_layers(net.points, runtime.point)
+        _import_head(net.head, runtime.head)
+    first = len(skr.first.layers)
+    _import_point_layers(skr.first, weights.skr.regressor.point[:first])
+    _import_point_layers(skr.rest, weights.skr.regressor.point[first:])
+    _import_head(skr.head, weights.skr.regressor.head)
+    with torch.no_grad():
+        for gru, layers in ((smrm.encoder, weights.smrm.encoder),
+                            (smrm.decoder, weights.smrm.decoder)):
+            for i, layer in enumerate(layers):
+                for name, array in zip(("weight_ih", "weight_hh", "bias_ih", "bias_hh"),
+                                       (layer[0].T, layer[1].T, layer[2], layer[3])):
+                    getattr(gru, f"{name}_l{i}").copy_(torch.from_numpy(array.copy()))
+    _set_dense(smrm.rotation_head, weights.smrm.rotation_head)
+    _set_dense(smrm.root_head, weights.smrm.root_head)
+    linears = [m for m in skin.hidden if isinstance(m, torch.nn.Linear)]
+    for linear, dense in zip(linears, weights.skin.hidden, strict=True):
+        _set_dense(linear, dense)
+    _set_dense(skin.output, weights.skin.output)

@@ -1,11 +1,13 @@
 """Train the three networks stage by stage, then export the runtime's weights file.
 
     python -m training.train {skr,skin,smrm,all} --recipe cpu --data data --out runs/cpu
-                             [--resume] [--device cpu|cuda] [--threads N]
+                             [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
 
 Each stage writes into --out: ``<stage>.pt`` (checkpoint, written atomically every eval),
 ``<stage>.csv`` (losses and validation metrics), ``<stage>.png`` (their plot). ``all`` then
 exports ``weights.npz`` (minretarget's format) recording the recipe, the data and the commit.
+Stages may be listed (``skr,smrm``); with ``--init WEIGHTS`` training starts from an exported
+file, stages not listed keep its networks, and the export happens after any stages.
 --resume continues each unfinished stage from its checkpoint; finished stages are skipped.
 Validation uses the held-out training subjects and bodies (``*_val.npz``), never the test split.
 """
@@ -23,7 +25,8 @@ import torch
 from tqdm import tqdm
 
 from minretarget.atomic import atomic_write
-from training.export import export_weights
+from minretarget.weights import load_weights
+from training.export import export_weights, import_weights
 from training.kinematics import forward_kinematics
 from training.losses import discriminator_loss, skin_loss, skr_loss, smrm_losses
 from training.models import MotionDiscriminator, MotionRetargeter, SkeletonRegressor, SkinningField
@@ -194,12 +197,22 @@ def mean_over_batches(count, size, function):
 
 # ----------------------------------------------------------------------------- stages
 
-def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None):
+def initial_models(recipe, init=None):
+    """The three networks, freshly initialised or, with ``init`` (runtime Weights), loaded
+    from an exported file (its batch norms folded, see ``export.import_weights``)."""
+    models = {"skr": SkeletonRegressor(recipe.model), "smrm": MotionRetargeter(recipe.model),
+              "skin": SkinningField(recipe.model)}
+    if init is not None:
+        import_weights(init, models["skr"], models["smrm"], models["skin"])
+    return models
+
+
+def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
     stage_recipe = recipe.skr
     train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
     tpose_train, tpose_val = (load_split(data_dir, f"skr_tpose_{s}", device)
                               for s in ("train", "val"))
-    model = SkeletonRegressor(recipe.model).to(device)
+    model = (model or SkeletonRegressor(recipe.model)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     stage = Stage("skr", run_dir, {"skr": model}, {"skr": optimizer}, stage_recipe.steps,
                   stage_recipe.eval_every, recipe.seed)
@@ -228,10 +241,10 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None):
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
 
-def train_skin(recipe, data_dir, run_dir, device, resume, stop_at=None):
+def train_skin(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
     stage_recipe = recipe.skin
     train, val = (load_split(data_dir, f"skin_{s}", device) for s in ("train", "val"))
-    model = SkinningField(recipe.model).to(device)
+    model = (model or SkinningField(recipe.model)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     stage = Stage("skin", run_dir, {"skin": model}, {"skin": optimizer}, stage_recipe.steps,
                   stage_recipe.eval_every, recipe.seed + 1)
@@ -274,10 +287,10 @@ def retarget_ground_truth(rotations, root, source_tpose, target_tpose):
     return joints
 
 
-def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None):
+def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
     stage_recipe = recipe.smrm
     train, val = (load_split(data_dir, f"smrm_{s}", device) for s in ("train", "val"))
-    model = MotionRetargeter(recipe.model).to(device)
+    model = (model or MotionRetargeter(recipe.model)).to(device)
     discriminator = MotionDiscriminator(recipe.model, stage_recipe.discriminator_width).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     optimizer_d = torch.optim.Adam(discriminator.parameters(),
@@ -326,8 +339,9 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None):
 
 # ----------------------------------------------------------------------------- command line
 
-def provenance(recipe, data_dir):
-    """What made these weights: recipe, data manifest summary, commit."""
+def provenance(recipe, data_dir, init=None):
+    """What made these weights: recipe, data manifest summary, commit, and the provenance of
+    the weights training started from, if any."""
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent, check=True).stdout.strip()
@@ -335,13 +349,27 @@ def provenance(recipe, data_dir):
         commit = "unknown"
     manifest_path = Path(data_dir) / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
-    return {"recipe": json.loads(recipe.to_json()), "commit": commit,
-            "data": {k: manifest.get(k) for k in ("config", "counts", "actor_hip_height")}}
+    out = {"recipe": json.loads(recipe.to_json()), "commit": commit,
+           "data": {k: manifest.get(k) for k in ("config", "counts", "actor_hip_height")}}
+    if init is not None:
+        out["init"] = init.metadata
+    return out
+
+
+def stage_list(text):
+    """"all" or "skr,smrm" -> the stages in training order."""
+    names = STAGES if text == "all" else tuple(text.split(","))
+    unknown = [n for n in names if n not in STAGES]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown stage {unknown}: choose from {STAGES} "
+                                         "or all")
+    return tuple(n for n in STAGES if n in names)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=STAGES + ("all",))
+    parser.add_argument("stage", type=stage_list,
+                        help="skr, skin, smrm, a comma-separated list of them, or all")
     parser.add_argument("--recipe", required=True,
                         help="a recipe JSON file, or the name of one in training/recipes")
     parser.add_argument("--data", default="data", help="the directory of the built datasets")
@@ -349,6 +377,9 @@ def main(argv=None):
     parser.add_argument("--resume", action="store_true", help="continue from checkpoints")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--threads", type=int, help="torch CPU threads")
+    parser.add_argument("--init", metavar="WEIGHTS",
+                        help="start from an exported weights file (e.g. the shipped one) "
+                             "instead of random initialisation; stages not trained keep it")
     parser.add_argument("--stop-at", type=int, metavar="STEP",
                         help="stop each stage at this step, checkpointed, to --resume later")
     args = parser.parse_args(argv)
@@ -360,18 +391,20 @@ def main(argv=None):
     (run_dir / "recipe.json").write_text(recipe.to_json())
     torch.manual_seed(recipe.seed)
     trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm}
-    models, finished = {}, True
-    for name in STAGES if args.stage == "all" else (args.stage,):
+    init = load_weights(args.init) if args.init else None
+    models, finished = initial_models(recipe, init), True
+    for name in args.stage:
         start = time.perf_counter()
         models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
-                                            args.resume, args.stop_at)
+                                            args.resume, args.stop_at, models[name])
         print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
         finished = finished and done
-    if args.stage == "all" and finished:
+    if finished and (args.stage == STAGES or init is not None):
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
-                       metadata=provenance(recipe, args.data))
+                       metadata=provenance(recipe, args.data, init))
         print(f"exported {path}")
+
 
 if __name__ == "__main__":
     main()

@@ -33,12 +33,19 @@ class ReferenceRetargeter(nn.Module):
     def step(self, points):
         """points (P, 3) one source frame -> dict of vertices (V, 3), joints (J, 3),
         rotations (J, 4), root (3,), source_joints (J, 3)."""
-        source_joints = self.skr(torch.as_tensor(points, dtype=torch.float32)[None])  # (1, J, 3)
-        rotations, root, joints, self.state = self.smrm(
-            source_joints[:, None], self.tpose_joints[None], self.state)
+        out, self.state = self.forward(torch.as_tensor(points, dtype=torch.float32), self.state)
+        return out
+
+    def forward(self, points, state):
+        """One frame as a pure function (what ``step`` runs, and what ONNX export traces):
+        points (P, 3), the MotionState before it (None at a stream's start) -> (dict as
+        ``step`` returns, the MotionState after it)."""
+        source_joints = self.skr(points[None])                           # (1, J, 3)
+        rotations, root, joints, state = self.smrm(
+            source_joints[:, None], self.tpose_joints[None], state)
         rotations, root, joints = rotations[0, 0], root[0, 0], joints[0, 0]
         _, global_rotations = forward_kinematics(rotations, root, self.tpose_joints)
         transforms = skinning_transforms(joints, global_rotations, self.tpose_joints)
         vertices = linear_blend_skinning(self.target_points, self.skin_weights, transforms)
         return dict(vertices=vertices, joints=joints, rotations=rotations, root=root,
-                    source_joints=source_joints[0])
+                    source_joints=source_joints[0]), state
