@@ -25,5 +25,9 @@ setup(
         # torch pulls a multi-GB CUDA build.
         "train": ["torch==2.13.0", "anny==0.6.2", "trimesh>=4.0", "tqdm>=4.60", "matplotlib>=3.6"],
         "test": ["pytest>=7", "hypothesis>=6"] + CLI,
+        # benchmarks/speed.py: the engines minretarget is compared with, and BLAS thread
+        # control (threadpoolctl, the library scikit-learn uses for the same job)
+        "bench": ["torch==2.13.0", "onnxruntime>=1.17", "onnx>=1.15", "onnxscript>=0.2",
+                  "threadpoolctl>=3.1"],
     },
 )

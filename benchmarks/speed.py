@@ -1,49 +1,54 @@
-"""Speed of the minretarget runtime, batch 1 streaming (one frame at a time, as online use).
+"""Speed of the minretarget runtime, against the torch reference and onnxruntime.
 
-    python benchmarks/speed.py [--quick] [--weights FILE] [--json OUT.json]
+    python benchmarks/speed.py [--quick] [--weights FILE] [--threads N] [--json OUT.json]
 
-Reports, for each (P source points, V target points): milliseconds per frame per stage (SKR,
-SMRM step, FK, LBS) and end to end, frames per second; and numba's compile time, cold (empty
-cache) and warm (from the on-disk cache), measured in fresh processes, apart from steady state.
-Without --weights it uses paper-size weights drawn at random (speed does not depend on them).
+One process, the same weights and inputs for every engine, batch 1 streaming (one frame at a
+time, as online use), with N threads everywhere (BLAS under numba, torch, onnxruntime):
+  * milliseconds per frame of each stage (SKR, SMRM step, FK, LBS) and end to end, at P source
+    points in {1024, 2048, 6890} and V target points in {6890, 13718} (--quick: the default
+    setting P = 2048, V = 13718 only), and their floating-point operations per frame;
+  * the torch reference (training/models/pipeline.py) in eager mode and, at the default
+    setting, under torch.compile; onnxruntime on the same step exported to ONNX;
+  * this machine's float32 matrix-multiply peak (a 2048^3 product), and SKR's fraction of it;
+  * numba's compile time with an empty cache and import + first frame from the on-disk cache,
+    each in a fresh process, apart from the steady state;
+  * resident memory along a 10,000-frame stream (--quick: 2,000), which must stay flat;
+  * offline throughput: whole sequences through ``Retargeter.retarget_sequence``.
+Ratios > 1 mean minretarget is faster. Without --weights it uses the shipped weights.
+Needs the ``bench`` extra (torch, onnxruntime, onnxscript, threadpoolctl).
 """
 import argparse
 import json
 import os
+import platform
 import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from minretarget.config import ModelConfig
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.skr import regress_joints
 from minretarget.smrm import retarget_step
-from minretarget.weights import load_weights, weight_template, weights_from_arrays, _leaves
+from minretarget.weights import load_weights
+
+DEFAULT_SETTING = (2048, 13718)
+SETTINGS = [(p, v) for p in (1024, 2048, 6890) for v in (6890, 13718)]
 
 
-def random_weights(config=ModelConfig(), seed=0):
-    """Weights of the right shapes with values ~ N(0, 1/fan_in)."""
-    rng = np.random.default_rng(seed)
-    arrays = {"format_version": np.array(1), "config": np.array(config.to_json()),
-              "metadata": np.array('{"purpose": "speed benchmark, random"}')}
-    for stage, tree in weight_template(config).items():
-        for key, shape in _leaves(tree, stage):
-            arrays[key] = (rng.standard_normal(shape) / np.sqrt(shape[0])).astype(np.float32)
-    return weights_from_arrays(arrays)
-
+# ----------------------------------------------------------------------------- inputs
 
 def body_cloud(rng, count):
-    """A body-sized cloud (count, 3), metres."""
+    """A body-sized Gaussian cloud (count, 3), metres (speed does not depend on its shape)."""
     return (rng.standard_normal((count, 3)) * [0.25, 0.45, 0.12] + [0, 0.9, 0]).astype(np.float32)
 
 
-def time_per_call(function, repeats, warmup=2):
-    """Median seconds per call."""
+def time_per_call(function, repeats, warmup=3):
+    """Median seconds per call after ``warmup`` calls."""
     for _ in range(warmup):
         function()
     times = []
@@ -54,9 +59,50 @@ def time_per_call(function, repeats, warmup=2):
     return float(np.median(times))
 
 
-def measure(weights, source_points, target_points, repeats):
+# ----------------------------------------------------------------------------- FLOPs
+
+def _chain_macs(in_width, widths):
+    """Multiply-adds per row of linear layers in_width -> widths[0] -> widths[1] ..."""
+    total = 0
+    for width in widths:
+        total += in_width * width
+        in_width = width
+    return total
+
+
+def stage_flops(config, points, vertices):
+    """Floating-point operations per frame of each stage (2 per multiply-add; biases,
+    activations and the max-pool left out), for P = ``points`` and V = ``vertices``."""
+    w, heads, j = config.skr_point_widths, config.skr_head_widths, config.num_joints
+    per_point = (_chain_macs(3, w) + _chain_macs(w[0], w)          # the two STNs' point layers
+                 + _chain_macs(3, w) + 3 * 3 + w[0] * w[0])         # regressor + x T_3, x T_w0
+    per_cloud = sum(_chain_macs(w[-1], list(heads) + [out]) for out in (9, w[0] ** 2, j * 3))
+    h = config.smrm_hidden
+    gru = 0
+    for in_width in (j * 3 + 3, h + j * 3):                          # encoder, decoder
+        for layer in range(config.smrm_layers):
+            gru += 3 * h * ((in_width if layer == 0 else h) + h)
+    return {"skr": 2 * (points * per_point + per_cloud),
+            "smrm_step": 2 * (gru + h * (j * 4 + 3)),
+            "fk": 2 * j * (27 + 9),                                  # R_parent R_local, R t
+            "lbs": 2 * vertices * j * 12 + 2 * vertices * 12}        # blend maps, apply
+
+
+def matmul_peak(threads, size=2048, repeats=5):
+    """float32 GFLOP/s of NumPy's BLAS on a size^3 product with ``threads`` threads."""
     rng = np.random.default_rng(0)
-    retargeter = Retargeter(weights)
+    a, b = (rng.standard_normal((size, size)).astype(np.float32) for _ in range(2))
+    with threadpool_limits(threads):
+        seconds = time_per_call(lambda: a @ b, repeats, warmup=2)
+    return 2 * size ** 3 / seconds / 1e9
+
+
+# ----------------------------------------------------------------------------- minretarget
+
+def minretarget_stages(weights, source_points, target_points, repeats):
+    """ms per frame of each runtime stage and end to end; and the retargeter and inputs."""
+    rng = np.random.default_rng(0)
+    retargeter = Retargeter(weights, warn=False)
     retargeter.set_target(body_cloud(rng, target_points))
     target = retargeter.target
     frames = [body_cloud(rng, source_points) for _ in range(8)]
@@ -64,7 +110,7 @@ def measure(weights, source_points, target_points, repeats):
     rotations, root, state = retarget_step(weights.smrm, None, source_joints, target.tpose_joints)
     joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
     transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
-    cycle = iter(range(10**9))
+    cycle = iter(range(10 ** 9))
     stages = {
         "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr),
         "smrm_step": lambda: retarget_step(weights.smrm, state, source_joints,
@@ -74,61 +120,228 @@ def measure(weights, source_points, target_points, repeats):
         "end_to_end": lambda: retargeter.step(frames[next(cycle) % 8]),
     }
     ms = {name: 1e3 * time_per_call(f, repeats) for name, f in stages.items()}
-    return {"P": source_points, "V": target_points, "ms": ms,
-            "fps_end_to_end": 1e3 / ms["end_to_end"]}
+    return ms, retargeter, frames
 
+
+# ----------------------------------------------------------------------------- torch, ONNX
+
+def torch_reference(weights, target):
+    """The torch ReferenceRetargeter holding the same weights and the runtime's target rig."""
+    import torch
+
+    from training.export import import_weights
+    from training.models.pipeline import ReferenceRetargeter
+    reference = ReferenceRetargeter(weights.config)
+    import_weights(weights, reference.skr, reference.smrm, reference.skin)
+    reference.eval()
+    reference.target_points = torch.from_numpy(target.points)
+    reference.tpose_joints = torch.from_numpy(target.tpose_joints)
+    reference.skin_weights = torch.from_numpy(target.skin_weights)
+    return reference
+
+
+def torch_times(reference, frames, repeats, compile_too):
+    """ms per frame: torch eager SKR and end to end; torch.compile end to end (or why not)."""
+    import torch
+    tensors = [torch.from_numpy(f) for f in frames]
+    cycle = iter(range(10 ** 9))
+    with torch.no_grad():
+        _, state = reference(tensors[0], None)
+        out = {"skr": 1e3 * time_per_call(lambda: reference.skr(tensors[next(cycle) % 8][None]),
+                                          repeats),
+               "end_to_end": 1e3 * time_per_call(
+                   lambda: reference(tensors[next(cycle) % 8], state), repeats)}
+        if compile_too:
+            try:
+                compiled = torch.compile(reference)
+                start = time.perf_counter()
+                compiled(tensors[0], state)
+                out["compile_s"] = time.perf_counter() - start
+                out["compiled_end_to_end"] = 1e3 * time_per_call(
+                    lambda: compiled(tensors[next(cycle) % 8], state), repeats)
+            except Exception as error:   # a missing compiler, an unsupported op: report it
+                out["compile_error"] = f"{type(error).__name__}: {str(error)[:300]}"
+    return out
+
+
+def onnx_times(reference, frames, threads, repeats):
+    """ms per frame of onnxruntime on the step exported to ONNX (state as inputs/outputs)."""
+    import onnxruntime
+    import torch
+
+    from training.models.smrm import MotionState
+
+    class FlatStep(torch.nn.Module):
+        """ReferenceRetargeter.forward with the recurrent state as plain tensors."""
+
+        def __init__(self, reference):
+            super().__init__()
+            self.reference = reference
+
+        def forward(self, points, *state):
+            out, new_state = self.reference(points, MotionState(*state))
+            return (out["vertices"], out["joints"], out["rotations"], out["root"], *new_state)
+
+    with torch.no_grad():
+        _, state = reference(torch.from_numpy(frames[0]), None)
+    inputs = (torch.from_numpy(frames[1]),) + tuple(state)
+    names = ["points", "encoder_hidden", "decoder_hidden", "previous_root", "leg_length_sum",
+             "frames_seen"]
+    start = time.perf_counter()
+    with torch.no_grad(), tempfile.TemporaryDirectory() as directory:
+        path = os.path.join(directory, "step.onnx")
+        torch.onnx.export(FlatStep(reference).eval(), inputs, path, input_names=names,
+                          dynamo=True, external_data=False, verbose=False)
+        with open(path, "rb") as file:
+            model = file.read()
+    export_s = time.perf_counter() - start
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+    session = onnxruntime.InferenceSession(model, options,
+                                           providers=["CPUExecutionProvider"])
+    feeds = [{"points": f, **{n: s.numpy() for n, s in zip(names[1:], state)}} for f in frames]
+    # Check it computes what torch does before timing it.
+    vertices = session.run(None, feeds[1])[0]
+    with torch.no_grad():
+        expected = reference(torch.from_numpy(frames[1]), state)[0]["vertices"].numpy()
+    error = float(np.abs(vertices - expected).max())
+    cycle = iter(range(10 ** 9))
+    ms = 1e3 * time_per_call(lambda: session.run(None, feeds[next(cycle) % 8]), repeats)
+    return {"end_to_end": ms, "export_s": export_s, "max_abs_diff_vs_torch_m": error}
+
+
+# ----------------------------------------------------------------------------- cold start
 
 COMPILE_SCRIPT = """
 import time; start = time.perf_counter()
-import numpy as np, sys
-sys.path.insert(0, {here!r})
-from speed import random_weights, body_cloud
+import numpy as np
 from minretarget.retargeter import Retargeter
 imported = time.perf_counter()
-weights = random_weights()
-loaded = time.perf_counter()
-r = Retargeter(weights); rng = np.random.default_rng(0)
-r.set_target(body_cloud(rng, 256)); r.step(body_cloud(rng, 256))
-done = time.perf_counter()
-print(imported - start, done - loaded)
+r = Retargeter.from_weights({weights!r}, warn=False)
+rng = np.random.default_rng(0)
+cloud = lambda n: (rng.standard_normal((n, 3)) * [0.25, 0.45, 0.12] + [0, 0.9, 0])
+r.set_target(cloud(13718).astype(np.float32)); r.step(cloud(2048).astype(np.float32))
+print(imported - start, time.perf_counter() - start)
 """
 
 
-def compile_times():
-    """(import s, first-call s) in a fresh process: cold cache, then warm from the cache."""
+def compile_times(weights_path):
+    """Fresh processes: cold (empty numba cache) and warm (from it); import and total time
+    to the first retargeted frame (loading the weights and the first target included)."""
     with tempfile.TemporaryDirectory() as cache:
         environment = {**os.environ, "NUMBA_CACHE_DIR": cache}
-        script = COMPILE_SCRIPT.format(here=os.path.dirname(os.path.abspath(__file__)))
         out = {}
         for label in ("cold", "warm"):
-            result = subprocess.run([sys.executable, "-c", script], env=environment,
-                                    capture_output=True, text=True, check=True)
-            seconds = [float(v) for v in result.stdout.split()]
-            out[label] = {"import_s": seconds[0], "first_frame_s": seconds[1]}
+            result = subprocess.run(
+                [sys.executable, "-c", COMPILE_SCRIPT.format(weights=weights_path)],
+                env=environment, capture_output=True, text=True, check=True)
+            imported, total = (float(v) for v in result.stdout.split())
+            out[label] = {"import_s": imported, "import_to_first_frame_s": total}
         return out
 
 
+# ----------------------------------------------------------------------------- memory, offline
+
+def resident_mb():
+    """This process's resident set size, MB (Linux /proc)."""
+    with open("/proc/self/statm") as file:
+        return int(file.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+
+
+def stream_memory(retargeter, frames, count, every=500):
+    """Resident MB sampled every ``every`` frames along a ``count``-frame stream."""
+    retargeter.reset()
+    samples = []
+    for index in range(count):
+        retargeter.step(frames[index % len(frames)])
+        if (index + 1) % every == 0:
+            samples.append(round(resident_mb(), 2))
+    return samples
+
+
+def offline_fps(retargeter, frames, workers, length=256):
+    """Frames per second of ``retarget_sequence`` on a ``length``-frame sequence, SKR on
+    ``workers`` threads with one BLAS thread each."""
+    sequence = np.stack([frames[i % len(frames)] for i in range(length)])
+    with threadpool_limits(1):
+        retargeter.retarget_sequence(sequence[:8], workers)          # warm up
+        start = time.perf_counter()
+        retargeter.retarget_sequence(sequence, workers)
+        return length / (time.perf_counter() - start)
+
+
+# ----------------------------------------------------------------------------- main
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="default setting only, fewer repeats")
-    parser.add_argument("--weights", help="a weights file (default: random paper-size weights)")
+    parser.add_argument("--quick", action="store_true", help="the default setting only")
+    parser.add_argument("--weights", help="a weights file (default: the shipped weights)")
+    parser.add_argument("--threads", type=int, default=os.cpu_count(),
+                        help="threads for BLAS, torch and onnxruntime (default: all cores)")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args()
-    weights = load_weights(args.weights) if args.weights else random_weights()
-    settings = [(2048, 13718)] if args.quick else [(p, v) for p in (1024, 2048, 6890)
-                                                   for v in (6890, 13718)]
-    results = {"config": json.loads(weights.config.to_json()),
-               "threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
-               "compile": compile_times(), "settings": []}
-    print(f"compile (fresh process): cold {results['compile']['cold']}, "
-          f"warm {results['compile']['warm']}")
-    print(f"{'P':>6} {'V':>6} " + " ".join(f"{k:>11}" for k in
-                                            ("skr", "smrm_step", "fk", "lbs", "end_to_end", "fps")))
-    for p, v in settings:
-        row = measure(weights, p, v, repeats=10 if args.quick else 30)
-        results["settings"].append(row)
-        print(f"{p:>6} {v:>6} " + " ".join(f"{row['ms'][k]:>9.3f}ms" for k in row["ms"])
-              + f" {row['fps_end_to_end']:>11.1f}")
+    import torch
+    torch.set_num_threads(args.threads)
+    weights = load_weights(args.weights)
+    repeats = 15 if args.quick else 30
+    results = {"weights": args.weights or "shipped default", "threads": args.threads,
+               "config": json.loads(weights.config.to_json()),
+               "machine": {"processor": platform.processor() or platform.machine(),
+                           "cores": os.cpu_count()},
+               "settings": []}
+    with threadpool_limits(args.threads):
+        results["matmul_peak_gflops"] = matmul_peak(args.threads)
+        print(f"float32 matmul peak, {args.threads} threads: "
+              f"{results['matmul_peak_gflops']:.1f} GFLOP/s")
+        results["compile"] = compile_times(args.weights)
+        print(f"numba: {json.dumps(results['compile'])}")
+        header = ("P", "V", "skr", "smrm_step", "fk", "lbs", "end_to_end", "fps",
+                  "torch", "compiled", "onnxrt")
+        print(" ".join(f"{h:>10}" for h in header))
+        for p, v in [DEFAULT_SETTING] if args.quick else SETTINGS:
+            ms, retargeter, frames = minretarget_stages(weights, p, v, repeats)
+            reference = torch_reference(weights, retargeter.target)
+            default = (p, v) == DEFAULT_SETTING
+            row = {"P": p, "V": v, "ms": ms, "fps_end_to_end": 1e3 / ms["end_to_end"],
+                   "flops": stage_flops(weights.config, p, v),
+                   "torch": torch_times(reference, frames, repeats, compile_too=default),
+                   "onnxruntime": onnx_times(reference, frames, args.threads, repeats)}
+            results["settings"].append(row)
+            print(" ".join(f"{x:>10}" for x in (p, v)) + " " + " ".join(
+                f"{ms[k]:>8.3f}ms" for k in ("skr", "smrm_step", "fk", "lbs", "end_to_end"))
+                + f" {row['fps_end_to_end']:>10.1f} {row['torch']['end_to_end']:>8.3f}ms "
+                + (f"{row['torch']['compiled_end_to_end']:>8.3f}ms"
+                   if "compiled_end_to_end" in row["torch"] else f"{'-':>10}")
+                + f" {row['onnxruntime']['end_to_end']:>8.3f}ms", flush=True)
+            if default:
+                count = 2000 if args.quick else 10000
+                results["memory_rss_mb"] = stream_memory(retargeter, frames, count)
+                results["memory_frames"] = count
+                results["offline_fps"] = offline_fps(retargeter, frames, args.threads)
+    row = next(r for r in results["settings"] if (r["P"], r["V"]) == DEFAULT_SETTING)
+    rss = results["memory_rss_mb"]
+    results.update({
+        "fps_end_to_end": row["fps_end_to_end"],
+        "ms_per_frame": row["ms"]["end_to_end"],
+        "ratio_vs_torch": row["torch"]["end_to_end"] / row["ms"]["end_to_end"],
+        "ratio_vs_torch_compile": (row["torch"]["compiled_end_to_end"] / row["ms"]["end_to_end"]
+                                   if "compiled_end_to_end" in row["torch"] else None),
+        "ratio_vs_onnxruntime": row["onnxruntime"]["end_to_end"] / row["ms"]["end_to_end"],
+        "skr_gflops": row["flops"]["skr"] / row["ms"]["skr"] / 1e6,
+        "skr_fraction_of_peak": row["flops"]["skr"] / row["ms"]["skr"] / 1e6
+        / results["matmul_peak_gflops"],
+        "warm_start_s": results["compile"]["warm"]["import_to_first_frame_s"],
+        "memory_growth_mb": rss[-1] - rss[1] if len(rss) > 1 else 0.0,
+    })
+    print(f"default setting P={DEFAULT_SETTING[0]}, V={DEFAULT_SETTING[1]}: "
+          f"{results['fps_end_to_end']:.1f} frames/s, {results['ratio_vs_torch']:.2f}x torch "
+          f"eager, {results['ratio_vs_onnxruntime']:.2f}x onnxruntime, SKR at "
+          f"{results['skr_gflops']:.1f} GFLOP/s = {100 * results['skr_fraction_of_peak']:.0f}% "
+          f"of peak; warm start {results['warm_start_s']:.2f} s; resident memory "
+          f"{rss[0]:.1f} -> {rss[-1]:.1f} MB over {results['memory_frames']} frames; offline "
+          f"{results['offline_fps']:.1f} frames/s")
     if args.json:
         with open(args.json, "w") as file:
             json.dump(results, file, indent=2)

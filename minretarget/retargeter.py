@@ -134,17 +134,18 @@ class Retargeter:
         transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
         return linear_blend_skinning(target.points, target.skin_weights, transforms), joints
 
-    def retarget_sequence(self, frames, chunk=32):
+    def retarget_sequence(self, frames, workers=1, chunk=32):
         """Retarget a whole recorded sequence at once (offline): the same result as ``run``,
-        up to float32 rounding, several times faster per frame.
+        up to float32 rounding, faster per frame.
 
-        SKR takes ``chunk`` clouds per matrix product and LBS poses ``chunk`` frames per
-        matrix product; only SMRM's recurrence runs frame by frame. The stream restarts
-        first, and ``state`` is left after the last frame, so ``step`` can continue it.
+        SKR runs on ``workers`` clouds side by side (see ``skr.regress_joints``), SMRM's
+        recurrence frame by frame, LBS on ``chunk`` frames per matrix product. The stream
+        restarts first, and ``state`` is left after the last frame, so ``step`` can go on.
 
         Args:
             frames: (T, P, 3) float32 source clouds, metres (the same P in every frame).
-            chunk: frames per batch, bounding memory to about chunk x P x 1024 floats.
+            workers: SKR threads (give BLAS one thread when > 1).
+            chunk: frames per LBS product, bounding its memory to V x chunk x 12 floats.
         Returns:
             RetargetedFrame whose fields have a leading T axis: vertices (T, V, 3), joints
             (T, J, 3), rotations (T, J, 4), root (T, 3), source_joints (T, J, 3).
@@ -158,8 +159,7 @@ class Retargeter:
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
-        source_joints = regress_joints(frames, self.weights.skr,
-                                       chunk_points=chunk * frames.shape[1])
+        source_joints = regress_joints(frames, self.weights.skr, workers)
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):

@@ -42,13 +42,12 @@ def test_skr_is_translation_equivariant_and_order_invariant(tiny_weights):
 
 
 def test_skr_batch_equals_per_item_calls(tiny_weights):
-    """Clouds batched into one product per layer (in chunks) give each cloud's own joints, up
-    to float32 rounding (BLAS sums a larger product in another order)."""
     batch = np.random.default_rng(3).normal(size=(5, 128, 3)).astype(np.float32)
-    joints = regress_joints(batch, tiny_weights.skr, chunk_points=256)     # chunks of 2 clouds
+    joints = regress_joints(batch, tiny_weights.skr)
+    threaded = regress_joints(batch, tiny_weights.skr, workers=2)
     for b in range(5):
-        np.testing.assert_allclose(joints[b], regress_joints(batch[b], tiny_weights.skr),
-                                   atol=1e-6)
+        np.testing.assert_array_equal(joints[b], regress_joints(batch[b], tiny_weights.skr))
+        np.testing.assert_array_equal(threaded[b], joints[b])
 
 
 def test_gru_layer_step_matches_twin(tiny_weights):
