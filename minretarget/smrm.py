@@ -17,7 +17,6 @@ import numpy as np
 
 from ._jit import kernel
 from .conventions import NUM_JOINTS
-from .kinematics import leg_length, quaternion_multiply
 from .nn import Dense, dense, sigmoid
 from .validation import as_float32_array
 
@@ -88,39 +87,30 @@ def retarget_step(weights, state, source_joints, target_tpose):
     target_tpose = as_float32_array(target_tpose, "target_tpose", (NUM_JOINTS, 3))
     if state is None:
         state = initial_state(weights, source_joints)
-    root = source_joints[0]
-    sin, cos = heading(source_joints)
-    features = np.concatenate([turn_about_up(source_joints - root, -sin, cos).ravel(),
-                               turn_about_up(root - state.previous_root, -sin, cos)])
-    skeleton = (target_tpose - target_tpose[0]).ravel()                 # (J*3,)
     encoder_hidden = state.encoder_hidden.copy()
     decoder_hidden = state.decoder_hidden.copy()
-    rotations, offset = _retarget_step_kernel(weights, features[None], skeleton[None],
-                                              encoder_hidden, decoder_hidden)
-    half = np.arctan2(sin, cos) / 2                                     # stable at a half turn
-    rotations[0] = quaternion_multiply([np.cos(half), 0.0, np.sin(half), 0.0], rotations[0])
-    leg_sum = state.leg_length_sum + float(leg_length(source_joints))
-    frames = state.frames_seen + 1
-    scale = np.float32(leg_length(target_tpose) / np.float32(leg_sum / frames))
-    new_state = MotionState(encoder_hidden, decoder_hidden, root.copy(), leg_sum, frames)
-    return rotations, scale * root + turn_about_up(offset, sin, cos), new_state
+    rotations, root, leg_sum = _retarget_step_kernel(
+        weights, source_joints, target_tpose, encoder_hidden, decoder_hidden,
+        state.previous_root, float(state.leg_length_sum), int(state.frames_seen))
+    new_state = MotionState(encoder_hidden, decoder_hidden, source_joints[0].copy(), leg_sum,
+                            state.frames_seen + 1)
+    return rotations, root, new_state
 
 
-def heading(joints):
-    """(J, 3) joints -> (sin, cos) of the turn about +Y taking +Z to the facing direction.
-
-    Facing = across x up, with across = (left hip - right hip) + (left shoulder - right
-    shoulder): in the T-pose, across is +X and the body faces +Z.
-    """
-    across = joints[1] - joints[2] + joints[16] - joints[17]
-    norm = max(float(np.hypot(across[0], across[2])), 1e-8)
-    return np.float32(-across[2] / norm), np.float32(across[0] / norm)
+@kernel
+def _turn_about_up(x, y, z, sin, cos):
+    """Rotate the vector (x, y, z) about +Y by the angle with this sine and cosine."""
+    return cos * x + sin * z, y, cos * z - sin * x
 
 
-def turn_about_up(vectors, sin, cos):
-    """Rotate (..., 3) vectors about +Y by the angle with this sine and cosine."""
-    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
-    return np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1).astype(np.float32)
+@kernel
+def _leg_length(joints):
+    """Mean hip-knee-ankle chain length of (J, 3) joints (``kinematics.leg_length``)."""
+    total = np.float32(0.0)
+    for hip, knee, ankle in ((1, 4, 7), (2, 5, 8)):
+        for a, b in ((hip, knee), (knee, ankle)):
+            total += np.sqrt(np.sum((joints[b] - joints[a]) ** 2))
+    return total / np.float32(2.0)
 
 
 @kernel
@@ -148,13 +138,47 @@ def _gru_step(x, hidden, layers):
 
 
 @kernel
-def _retarget_step_kernel(weights, features, skeleton, encoder_hidden, decoder_hidden):
+def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
+                          decoder_hidden, previous_root, leg_sum, frames_seen):
+    """One frame, the module docstring's steps 1-5; updates the hidden states in place.
+    Returns rotations (J, 4), root (3,) and the new sum of source leg lengths (float64)."""
+    j = source_joints.shape[0]
+    root = source_joints[0]
+    # 1. heading: facing = across x up, across from the hips and the shoulders
+    across = source_joints[1] - source_joints[2] + source_joints[16] - source_joints[17]
+    norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
+    sin, cos = -across[2] / norm, across[0] / norm
+    # 2. features in the heading frame (turned by -heading)
+    features = np.empty((1, 3 * j + 3), dtype=np.float32)
+    for k in range(j + 1):
+        v = source_joints[k] - root if k < j else root - previous_root
+        features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = _turn_about_up(
+            v[0], v[1], v[2], -sin, cos)
+    # 3. encoder, then decoder over [encoded, T-pose relative to its root]
     encoded = _gru_step(features, encoder_hidden, weights.encoder)       # (1, H)
-    decoder_input = np.concatenate((encoded, skeleton), axis=1)          # (1, H + J*3)
+    decoder_input = np.empty((1, encoded.shape[1] + 3 * j), dtype=np.float32)
+    decoder_input[0, :encoded.shape[1]] = encoded[0]
+    decoder_input[0, encoded.shape[1]:] = (target_tpose - target_tpose[0]).ravel()
     decoded = _gru_step(decoder_input, decoder_hidden, weights.decoder)
+    # 4. heads: unit quaternions and the root offset
     q = dense(decoded, weights.rotation_head, False).reshape(-1, 4)      # (J, 4)
-    for j in range(q.shape[0]):
-        norm = np.sqrt(q[j, 0] ** 2 + q[j, 1] ** 2 + q[j, 2] ** 2 + q[j, 3] ** 2)
-        q[j] /= max(norm, np.float32(1e-8))
+    for k in range(q.shape[0]):
+        norm = np.sqrt(q[k, 0] ** 2 + q[k, 1] ** 2 + q[k, 2] ** 2 + q[k, 3] ** 2)
+        q[k] /= max(norm, np.float32(1e-8))
     offset = dense(decoded, weights.root_head, False)[0]                # (3,)
-    return q, offset
+    # 5. root rotation turned by the heading (half angle: stable at a half turn) ...
+    half = np.arctan2(sin, cos) / np.float32(2.0)
+    hw, hy = np.cos(half), np.sin(half)
+    w, x, y, z = q[0, 0], q[0, 1], q[0, 2], q[0, 3]
+    q[0, 0], q[0, 1], q[0, 2], q[0, 3] = hw * w - hy * y, hw * x + hy * z, hw * y + hy * w, \
+        hw * z - hy * x
+    # ... and the root: the source root scaled to the target's size, plus the turned offset
+    leg_sum = leg_sum + np.float64(_leg_length(source_joints))
+    scale = np.float32(np.float64(_leg_length(target_tpose))
+                       / np.float64(np.float32(leg_sum / (frames_seen + 1))))
+    out_root = np.empty(3, dtype=np.float32)
+    out_root[0], out_root[1], out_root[2] = _turn_about_up(offset[0], offset[1], offset[2],
+                                                           sin, cos)
+    for a in range(3):
+        out_root[a] += scale * root[a]
+    return q, out_root, leg_sum
