@@ -174,8 +174,9 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
         hw * z - hy * x
     # ... and the root: the source root scaled to the target's size, plus the turned offset
     leg_sum = leg_sum + np.float64(_leg_length(source_joints))
-    scale = np.float32(np.float64(_leg_length(target_tpose))
-                       / np.float64(np.float32(leg_sum / (frames_seen + 1))))
+    # (a degenerate source whose legs have no length must not divide by zero)
+    mean_leg = max(np.float32(leg_sum / (frames_seen + 1)), np.float32(1e-6))
+    scale = np.float32(np.float64(_leg_length(target_tpose)) / np.float64(mean_leg))
     out_root = np.empty(3, dtype=np.float32)
     out_root[0], out_root[1], out_root[2] = _turn_about_up(offset[0], offset[1], offset[2],
                                                            sin, cos)
