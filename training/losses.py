@@ -4,7 +4,6 @@ SMRM is trained without retargeting ground truth: a source clip A is retargeted 
 body's skeleton B and back, and the losses judge only what can be known without knowing the
 right answer (cycle consistency, realism, smoothness, consistency of rotations).
 """
-import torch
 import torch.nn.functional as F
 
 from training.kinematics import linear_blend_skinning, skinning_transforms, forward_kinematics
