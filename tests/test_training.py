@@ -11,7 +11,7 @@ from minretarget.conventions import NUM_JOINTS, PARENTS  # noqa: E402
 from training import kinematics  # noqa: E402
 from training.losses import rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
-from training.train import main, retarget_ground_truth  # noqa: E402
+from training.train import main, retarget_ground_truth, source_noise  # noqa: E402
 
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
@@ -123,6 +123,25 @@ def test_init_trains_listed_stages_and_keeps_the_others(run, tmp_path):
                if k.startswith("smrm."))
     metadata = json.loads(str(after["metadata"]))
     assert metadata["init"]["recipe"]["name"] == "tiny"
+
+
+def test_source_noise_has_the_profile_it_is_given():
+    """Per joint: the clip-constant and frame parts' stds, and the frame part's lag-1
+    autocorrelation, measured on many clips, are the recipe's."""
+    bias, frame = np.linspace(0.01, 0.05, NUM_JOINTS), np.linspace(0.02, 0.04, NUM_JOINTS)
+    stage = load_recipe("cpu").smrm.__class__(input_noise_bias=tuple(bias),
+                                               input_noise_frame=tuple(frame),
+                                               input_noise_autocorrelation=0.8)
+    noise = source_noise((4000, 30, NUM_JOINTS, 3), stage, torch.Generator().manual_seed(0))
+    noise = noise.numpy().astype(np.float64)
+    clip_mean = noise.mean(axis=1)                                       # (B, J, 3)
+    rest = noise - clip_mean[:, None]
+    np.testing.assert_allclose(noise.std(axis=(0, 1, 3)), np.hypot(bias, frame), rtol=0.03)
+    lag1 = (rest[:, 1:] * rest[:, :-1]).mean() / (rest[:, :-1] ** 2).mean()
+    assert 0.7 < lag1 < 0.8   # below 0.8: the clip mean removes part of the slow component
+    white = source_noise((100, 30, NUM_JOINTS, 3), load_recipe("cpu").smrm,
+                         torch.Generator().manual_seed(0))
+    assert abs(float(white.std()) - 0.01) < 0.0005
 
 
 def test_recipes_load_and_reject_unknown_keys(tmp_path):

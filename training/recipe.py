@@ -41,6 +41,12 @@ class SMRMStage:
     discriminator_learning_rate: float = 1e-4
     discriminator_width: int = 256
     input_noise: float = 0.01    # metres of Gaussian noise on source joints, as SKR makes
+    # Or noise shaped like SKR's measured error (python -m training.skr_noise): per joint,
+    # the std (metres) of a part constant along a clip and of a part that changes from frame
+    # to frame with this lag-1 autocorrelation. Empty: white noise of ``input_noise``.
+    input_noise_bias: tuple = ()
+    input_noise_frame: tuple = ()
+    input_noise_autocorrelation: float = 0.0
     # Loss weights: joint cycle A -> B -> A, reconstruction A -> A, adversarial, rotation
     # cycle and smoothness (the last two as in the paper).
     cycle: float = 1.0

@@ -277,6 +277,23 @@ def train_skin(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
 
+def source_noise(shape, stage_recipe, generator):
+    """Noise for (B, T, J, 3) source clips, as SKR's error (see SMRMStage.input_noise_*):
+    white with std ``input_noise``, or per joint a clip-constant part plus a stationary
+    AR(1) part with the recipe's stds and autocorrelation."""
+    white = torch.randn(shape, generator=generator)
+    if not stage_recipe.input_noise_bias:
+        return stage_recipe.input_noise * white
+    rho = stage_recipe.input_noise_autocorrelation
+    frame = [white[:, 0]]
+    for t in range(1, shape[1]):
+        frame.append(rho * frame[-1] + math.sqrt(1 - rho ** 2) * white[:, t])
+    bias_std = torch.tensor(stage_recipe.input_noise_bias)[:, None]             # (J, 1)
+    frame_std = torch.tensor(stage_recipe.input_noise_frame)[:, None]
+    bias = torch.randn((shape[0], 1) + tuple(shape[2:]), generator=generator)
+    return bias * bias_std + torch.stack(frame, dim=1) * frame_std
+
+
 def retarget_ground_truth(rotations, root, source_tpose, target_tpose):
     """Mixamo-style ground truth: A's local rotations on B, root scaled by the hip heights.
 
@@ -304,10 +321,10 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
         count, size = len(train["joints"]), stage_recipe.batch_size
         index = stage.batch(count, size)
         joints = train["joints"][index]
-        noise = torch.randn(joints.shape, generator=stage.generator).to(device)
+        noise = source_noise(joints.shape, stage_recipe, stage.generator).to(device)
         target = bodies[torch.randint(len(bodies), (size,), generator=stage.generator)]
         loss, terms, joints_ab = smrm_losses(
-            model, discriminator, joints, joints + stage_recipe.input_noise * noise,
+            model, discriminator, joints, joints + noise,
             train["tpose_joints"][index], target, stage_recipe)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
