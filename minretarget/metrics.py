@@ -21,6 +21,17 @@ Acc, PA-Acc (metres per frame^2)
     The unit is metres per frame^2, NOT metres per s^2: multiply by ``FPS ** 2`` (900) for
     m/s^2. They measure jitter and temporal inconsistency. PA-Acc is taken on the per-frame
     aligned prediction. ``evaluate`` reports both on the joints.
+Jitter (metres per frame^2)
+    ``jitter``: mean over the T - 2 interior frames and the points of the norm of the second
+    finite difference of one sequence alone (no ground truth): how much it shakes.
+Foot sliding (metres per second)
+    ``foot_sliding``: mean horizontal speed of the feet (joints ``left_foot`` and
+    ``right_foot``) over the steps t -> t+1 where that foot is in contact with the ground.
+    Contact is judged from height alone, per foot: the foot is within ``contact_height`` of
+    its own lowest height in the sequence in both frames of the step. The floor is each foot's
+    own lowest point, not y = 0, so that a sequence floating above or sunk below y = 0 (or a
+    result placed a little off the truth) is judged on its own; the price is that a foot that
+    never touches the ground gets its lowest moment counted as contact.
 MEDL (metres)
     Mean absolute edge-length difference: the undirected k-nearest-neighbour graph (k = 6,
     each edge once) is built once on the ground-truth points of the first frame (or on given
@@ -30,6 +41,8 @@ MEDL (metres)
 """
 import numpy as np
 from scipy.spatial import cKDTree
+
+from .conventions import FPS, JOINT_INDEX, UP_AXIS
 
 # Each metric's name in the tables, in the order ``evaluate`` returns them.
 METRIC_NAMES = ("MPJPE", "PA-MPJPE", "Acc", "PA-Acc", "MPVD", "PA-MPVD", "MEDL")
@@ -262,6 +275,69 @@ def medl(pred, gt, k=6, rest=None):
         gt_length = np.linalg.norm(g[:, i] - g[:, j], axis=-1)      # (b, E)
         total += np.abs(pred_length - gt_length).sum()
     return float(total / (pred.shape[0] * len(i)))
+
+
+def jitter(points):
+    """Mean acceleration magnitude of one sequence (no ground truth), metres per frame^2.
+
+    Args:
+        points: (T, N, 3) points (joints, say), metres, T >= 3 frames.
+    Returns:
+        float: mean over the T - 2 interior frames and the N points of
+        ``|x[t+1] - 2 x[t] + x[t-1]|``; multiply by ``FPS ** 2`` for m/s^2.
+    """
+    points = _as_float64(points, "points", sequence=True)
+    if points.shape[0] < 3:
+        raise ValueError(f"points need at least 3 frames, got shape {points.shape}")
+    return float(np.linalg.norm(_second_difference(points), axis=-1).mean())
+
+
+FOOT_JOINTS = ("left_foot", "right_foot")
+
+
+def foot_contacts(joints, contact_height=0.03, feet=FOOT_JOINTS):
+    """Which steps t -> t+1 each foot is in contact with the ground (see ``foot_sliding``).
+
+    Args:
+        joints: (T, J, 3) joints in ``conventions.JOINT_NAMES`` order, metres, +Y up, T >= 2.
+        contact_height: metres above the foot's own lowest height that still count as contact.
+        feet: joint names of the feet.
+    Returns:
+        (T - 1, F) bool, F = len(feet): the foot is at most ``contact_height`` above its
+        lowest height over the sequence in both frames t and t + 1.
+    """
+    joints = _as_float64(joints, "joints", sequence=True)
+    if joints.shape[0] < 2:
+        raise ValueError(f"joints need at least 2 frames, got shape {joints.shape}")
+    height = joints[:, [JOINT_INDEX[name] for name in feet], UP_AXIS]   # (T, F)
+    low = height - height.min(axis=0) <= contact_height                 # (T, F)
+    return low[:-1] & low[1:]
+
+
+def foot_sliding(joints, fps=FPS, contact_height=0.03, feet=FOOT_JOINTS):
+    """Mean horizontal speed of the feet while they touch the ground, metres per second.
+
+    A step t -> t+1 of a foot counts as contact when the foot's height is at most
+    ``contact_height`` above that foot's own lowest height over the sequence in both frames
+    (``foot_contacts``; see the module docstring for why the floor is per foot). Its speed is
+    the horizontal (x, z) displacement over the step times ``fps``. The contact steps of all
+    feet are pooled.
+
+    Args:
+        joints: (T, J, 3) joints in ``conventions.JOINT_NAMES`` order, metres, +Y up, T >= 2.
+        fps: frames per second.
+        contact_height: metres above the foot's lowest height that still count as contact
+            (default 3 cm).
+        feet: joint names of the feet.
+    Returns:
+        float, m/s: mean speed over the contact steps; nan if there are none.
+    """
+    joints = _as_float64(joints, "joints", sequence=True)
+    contact = foot_contacts(joints, contact_height, feet)               # (T-1, F)
+    horizontal = [axis for axis in range(3) if axis != UP_AXIS]
+    feet_xz = joints[:, [JOINT_INDEX[name] for name in feet]][..., horizontal]  # (T, F, 2)
+    speed = np.linalg.norm(np.diff(feet_xz, axis=0), axis=-1) * fps     # (T-1, F)
+    return float(speed[contact].mean()) if contact.any() else float("nan")
 
 
 def evaluate(pred_joints, gt_joints, pred_points, gt_points, k=6, rest_points=None):

@@ -7,7 +7,8 @@ Drawn with matplotlib's Agg canvas (no display, no global pyplot state), orthogr
 from the front-left (``AZIMUTH`` about +Y, canonical axes; the body faces +Z), each panel
 centred on that frame's pelvis. The source is drawn as its skeleton (the joints SKR found, or
 the BVH's), over its point cloud when ``source_points`` are given; the result as its posed
-points shaded by depth, under its skeleton. Needs the ``cli`` extra (matplotlib, Pillow).
+points shaded by depth, under its skeleton, and a reference skeleton (e.g. the ground truth)
+over it when ``truth_joints`` are given. Needs the ``cli`` extra (matplotlib, Pillow).
 """
 import io
 import math
@@ -25,7 +26,7 @@ AZIMUTH = 40.0                 # degrees about +Y from the front view
 MAX_POINTS = 4000              # result points drawn per panel (a fixed random subset)
 STRIP_FRAMES = 6
 MAX_GIF_FRAMES = 150
-_SOURCE_COLOR, _RESULT_COLOR = "tab:blue", "tab:orange"
+_SOURCE_COLOR, _RESULT_COLOR, _TRUTH_COLOR = "tab:blue", "tab:orange", "tab:green"
 
 
 def project(points, azimuth=AZIMUTH):
@@ -45,9 +46,10 @@ def _selected_frames(count, suffix):
     return np.arange(0, count, max(1, math.ceil(count / MAX_GIF_FRAMES)))
 
 
-def _collect(result, vertices, source_points, keep):
+def _collect(result, vertices, source_points, keep, truth_joints=None):
     """The drawn frames' arrays, canonical: list of dicts (joints, source_joints, vertices,
-    source_points or None); only these frames' vertices are ever held in memory."""
+    source_points or None, truth_joints or None); only these frames' vertices are ever held in
+    memory."""
     space = make_space(str(result["units"]), str(result["up_axis"]))
     joints = to_canonical(result["joints"], space)
     source_joints = to_canonical(result["source_joints"], space)
@@ -60,7 +62,9 @@ def _collect(result, vertices, source_points, keep):
             frames.append({"index": index, "joints": joints[index],
                            "source_joints": source_joints[index],
                            "vertices": to_canonical(np.asarray(posed)[subset], space),
-                           "source_points": None if cloud is None else np.asarray(cloud)})
+                           "source_points": None if cloud is None else np.asarray(cloud),
+                           "truth_joints": None if truth_joints is None
+                           else np.asarray(truth_joints[index], dtype=np.float64)})
     return frames
 
 
@@ -69,6 +73,8 @@ def _limits(frames, key, points_key):
     half, low, high = 0.3, np.inf, -np.inf
     for frame in frames:
         drawn = [frame[key]] + ([frame[points_key]] if frame[points_key] is not None else [])
+        if key == "joints" and frame["truth_joints"] is not None:
+            drawn.append(frame["truth_joints"])
         screen = np.concatenate([project(p)[0] for p in drawn])
         pelvis = project(frame[key][0])[0]
         half = max(half, np.abs(screen[:, 0] - pelvis[0]).max())
@@ -77,7 +83,16 @@ def _limits(frames, key, points_key):
     return half + margin, (low - margin, high + margin)
 
 
-def _draw(axes, joints, points, color, limits, shaded):
+def _skeleton(axes, joints, color, lw=1.5, size=6):
+    screen, _ = project(joints)
+    for j, parent in enumerate(PARENTS):
+        if parent >= 0:
+            axes.plot(screen[[parent, j], 0], screen[[parent, j], 1], color=color, lw=lw)
+    axes.scatter(screen[:, 0], screen[:, 1], color=color, s=size, zorder=3)
+    return screen
+
+
+def _draw(axes, joints, points, color, limits, shaded, truth=None):
     """One panel: points (shaded by depth or grey), then the skeleton, centred on the pelvis."""
     half, (low, high) = limits
     if points is not None:
@@ -90,11 +105,9 @@ def _draw(axes, joints, points, color, limits, shaded):
                          vmin=far - 0.5 * (near - far), vmax=near, s=1.5, linewidths=0)
         else:
             axes.scatter(screen[:, 0], screen[:, 1], color="0.65", s=0.8, linewidths=0)
-    screen, _ = project(joints)
-    for j, parent in enumerate(PARENTS):
-        if parent >= 0:
-            axes.plot(screen[[parent, j], 0], screen[[parent, j], 1], color=color, lw=1.5)
-    axes.scatter(screen[:, 0], screen[:, 1], color=color, s=6, zorder=3)
+    screen = _skeleton(axes, joints, color)
+    if truth is not None:
+        _skeleton(axes, truth, _TRUTH_COLOR, lw=1.0, size=3)
     centre = screen[0, 0]
     axes.set_xlim(centre - half, centre + half)
     axes.set_ylim(low, high)
@@ -103,7 +116,7 @@ def _draw(axes, joints, points, color, limits, shaded):
     axes.set_yticks([])
 
 
-def render(result_path, out_path, source_points=None):
+def render(result_path, out_path, source_points=None, truth_joints=None, title=None):
     """Draw a preview of ``result.npz`` into a ``.png`` strip or a ``.gif`` animation.
 
     Args:
@@ -111,6 +124,9 @@ def render(result_path, out_path, source_points=None):
         out_path: ``.png`` or ``.gif``; written atomically.
         source_points: optional iterable of the T source clouds (P, 3), canonical metres,
             drawn under the source skeleton.
+        truth_joints: optional (T, J, 3) canonical metres, a reference skeleton (the ground
+            truth, say) drawn thinner, in green, over the result's skeleton.
+        title: optional line written above the strip (PNG only).
     Returns:
         the number of frames drawn.
     """
@@ -137,7 +153,7 @@ def render(result_path, out_path, source_points=None):
     if count == 0:
         raise ValueError(f"{result_path}: holds no frames")
     frames = _collect(result, NpzFrames(result_path, "vertices"), source_points,
-                      _selected_frames(count, suffix))
+                      _selected_frames(count, suffix), truth_joints)
     source_limits = _limits(frames, "source_joints", "source_points")
     result_limits = _limits(frames, "joints", "vertices")
     fps = float(result["fps"])
@@ -148,7 +164,7 @@ def render(result_path, out_path, source_points=None):
                   source_limits, shaded=False)
         else:
             _draw(axes, frame["joints"], frame["vertices"], _RESULT_COLOR, result_limits,
-                  shaded=True)
+                  shaded=True, truth=frame["truth_joints"])
 
     # Panel heights follow each row's aspect (vertical range over width), panels 2 inches wide.
     heights = [(limits[1][1] - limits[1][0]) / (2 * limits[0])
@@ -163,6 +179,8 @@ def render(result_path, out_path, source_points=None):
             grid[0, column].set_title(f"t = {frame['index'] / fps:.2f} s", fontsize=9)
         grid[0, 0].set_ylabel("source")
         grid[1, 0].set_ylabel("retargeted")
+        if title:
+            figure.suptitle(title, fontsize=9)
         figure.tight_layout()
         buffer = io.BytesIO()
         FigureCanvasAgg(figure).print_png(buffer)

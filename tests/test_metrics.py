@@ -8,8 +8,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from minretarget.metrics import (
-    METRIC_NAMES, acceleration_error, evaluate, knn_edges, mean_point_error, medl, mpjpe, mpvd,
-    pa_acceleration_error, pa_mpjpe, pa_mpvd, procrustes_align)
+    METRIC_NAMES, acceleration_error, evaluate, foot_contacts, foot_sliding, jitter, knn_edges,
+    mean_point_error, medl, mpjpe, mpvd, pa_acceleration_error, pa_mpjpe, pa_mpvd,
+    procrustes_align)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -371,3 +372,55 @@ def test_pa_mpjpe_can_exceed_mpjpe():
     pred[0, 0] += np.array([1.0, 0.0, 0.0])
     assert mpjpe(pred, gt) == pytest.approx(1 / 22)
     assert pa_mpjpe(pred, gt) > mpjpe(pred, gt)
+
+
+# ----------------------------------------------------------------------------- jitter, feet
+
+def _feet_walk(left, right, frames=5):
+    """(T, 22, 3) joints, all at the origin but the two feet, given as (T, 3) arrays."""
+    from minretarget.conventions import JOINT_INDEX
+    joints = np.zeros((frames, 22, 3))
+    joints[:, JOINT_INDEX["left_foot"]] = left
+    joints[:, JOINT_INDEX["right_foot"]] = right
+    return joints
+
+
+def test_jitter_hand_computed():
+    t = np.arange(5.0)
+    still = np.zeros((5, 2, 3))
+    assert jitter(still) == 0.0
+    constant_speed = np.zeros((5, 1, 3))
+    constant_speed[:, 0, 0] = 2.0 * t                 # second difference 0
+    assert jitter(constant_speed) == pytest.approx(0.0, abs=1e-12)
+    accelerating = np.zeros((5, 2, 3))
+    accelerating[:, 0, 1] = 0.5 * t ** 2              # second difference 1 m/frame^2
+    accelerating[:, 1, 2] = 1.5 * t ** 2              # 3 m/frame^2
+    assert jitter(accelerating) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="3 frames"):
+        jitter(np.zeros((2, 1, 3)))
+
+
+def test_foot_sliding_hand_computed():
+    t = np.arange(5.0)
+    zeros = np.zeros(5)
+    planted = np.stack([zeros + 0.3, zeros + 0.05, zeros], axis=-1)       # never moves
+    dragged = np.stack([t / 30.0, zeros, zeros], axis=-1)                 # 1 m/s on the floor
+    # Both planted: 0. One planted, one dragged at 1 m/s: 8 contact steps, 4 of them at 1 m/s.
+    assert foot_sliding(_feet_walk(planted, planted)) == 0.0
+    assert foot_sliding(_feet_walk(dragged, dragged)) == pytest.approx(1.0)
+    assert foot_sliding(_feet_walk(planted, dragged)) == pytest.approx(0.5)
+    # A foot moving fast in the air (0.2 m above its lowest point from frame 1 on) is never in
+    # contact (its only low frame, 0, has its next frame in the air), so it is not counted.
+    flying = np.stack([3.0 * t, np.where(t > 0, 0.2, 0.0), zeros], axis=-1)
+    contact = foot_contacts(_feet_walk(planted, flying))
+    assert contact[:, 0].all() and not contact[:, 1].any()
+    assert foot_sliding(_feet_walk(planted, flying)) == 0.0
+    # Heights within contact_height of the lowest count, and only horizontal speed counts:
+    # bobbing 2 cm up and down while dragged at 1 m/s is contact at 1 m/s; with a 1 cm
+    # threshold no step has both frames low.
+    bobbing = dragged + np.stack([zeros, 0.02 * (t % 2), zeros], axis=-1)
+    assert foot_sliding(_feet_walk(bobbing, bobbing), contact_height=0.03) == pytest.approx(1.0)
+    assert math.isnan(foot_sliding(_feet_walk(bobbing, bobbing), contact_height=0.01))
+    # fps scales the speed; no contact at all gives nan.
+    assert foot_sliding(_feet_walk(dragged, dragged), fps=60) == pytest.approx(2.0)
+    assert math.isnan(foot_sliding(_feet_walk(flying, flying), contact_height=-1.0))
