@@ -92,17 +92,17 @@ def matmul_peak(threads, size=2048, repeats=5):
     """float32 GFLOP/s of NumPy's BLAS on a size^3 product with ``threads`` threads."""
     rng = np.random.default_rng(0)
     a, b = (rng.standard_normal((size, size)).astype(np.float32) for _ in range(2))
-    with threadpool_limits(threads):
+    with threadpool_limits(threads, user_api="blas"):
         seconds = time_per_call(lambda: a @ b, repeats, warmup=2)
     return 2 * size ** 3 / seconds / 1e9
 
 
 # ----------------------------------------------------------------------------- minretarget
 
-def minretarget_stages(weights, source_points, target_points, repeats):
+def minretarget_stages(weights, source_points, target_points, repeats, workers):
     """ms per frame of each runtime stage and end to end; and the retargeter and inputs."""
     rng = np.random.default_rng(0)
-    retargeter = Retargeter(weights, warn=False)
+    retargeter = Retargeter(weights, warn=False, workers=workers)
     retargeter.set_target(body_cloud(rng, target_points))
     target = retargeter.target
     frames = [body_cloud(rng, source_points) for _ in range(8)]
@@ -112,7 +112,7 @@ def minretarget_stages(weights, source_points, target_points, repeats):
     transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
     cycle = iter(range(10 ** 9))
     stages = {
-        "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr),
+        "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr, workers),
         "smrm_step": lambda: retarget_step(weights.smrm, state, source_joints,
                                            target.tpose_joints),
         "fk": lambda: forward_kinematics(rotations, root, target.tpose_joints),
@@ -261,15 +261,13 @@ def stream_memory(retargeter, frames, count, every=500):
     return samples
 
 
-def offline_fps(retargeter, frames, workers, length=256):
-    """Frames per second of ``retarget_sequence`` on a ``length``-frame sequence, SKR on
-    ``workers`` threads with one BLAS thread each."""
+def offline_fps(retargeter, frames, length=256):
+    """Frames per second of ``retarget_sequence`` on a ``length``-frame sequence."""
     sequence = np.stack([frames[i % len(frames)] for i in range(length)])
-    with threadpool_limits(1):
-        retargeter.retarget_sequence(sequence[:8], workers)          # warm up
-        start = time.perf_counter()
-        retargeter.retarget_sequence(sequence, workers)
-        return length / (time.perf_counter() - start)
+    retargeter.retarget_sequence(sequence[:8])                       # warm up
+    start = time.perf_counter()
+    retargeter.retarget_sequence(sequence)
+    return length / (time.perf_counter() - start)
 
 
 # ----------------------------------------------------------------------------- main
@@ -280,18 +278,24 @@ def main():
     parser.add_argument("--weights", help="a weights file (default: the shipped weights)")
     parser.add_argument("--threads", type=int, default=os.cpu_count(),
                         help="threads for BLAS, torch and onnxruntime (default: all cores)")
+    parser.add_argument("--workers", type=int,
+                        help="minretarget's SKR threads (Retargeter(workers=...)), each with "
+                             "one BLAS thread; default: --threads; 1: BLAS gets --threads")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args()
+    workers = args.workers or args.threads
+    blas_threads = 1 if workers > 1 else args.threads
     import torch
     torch.set_num_threads(args.threads)
     weights = load_weights(args.weights)
     repeats = 15 if args.quick else 30
     results = {"weights": args.weights or "shipped default", "threads": args.threads,
+               "minretarget_workers": workers, "minretarget_blas_threads": blas_threads,
                "config": json.loads(weights.config.to_json()),
                "machine": {"processor": platform.processor() or platform.machine(),
                            "cores": os.cpu_count()},
                "settings": []}
-    with threadpool_limits(args.threads):
+    with threadpool_limits(blas_threads, user_api="blas"):
         results["matmul_peak_gflops"] = matmul_peak(args.threads)
         print(f"float32 matmul peak, {args.threads} threads: "
               f"{results['matmul_peak_gflops']:.1f} GFLOP/s")
@@ -301,7 +305,7 @@ def main():
                   "torch", "compiled", "onnxrt")
         print(" ".join(f"{h:>10}" for h in header))
         for p, v in [DEFAULT_SETTING] if args.quick else SETTINGS:
-            ms, retargeter, frames = minretarget_stages(weights, p, v, repeats)
+            ms, retargeter, frames = minretarget_stages(weights, p, v, repeats, workers)
             reference = torch_reference(weights, retargeter.target)
             default = (p, v) == DEFAULT_SETTING
             row = {"P": p, "V": v, "ms": ms, "fps_end_to_end": 1e3 / ms["end_to_end"],
@@ -319,7 +323,7 @@ def main():
                 count = 2000 if args.quick else 10000
                 results["memory_rss_mb"] = stream_memory(retargeter, frames, count)
                 results["memory_frames"] = count
-                results["offline_fps"] = offline_fps(retargeter, frames, args.threads)
+                results["offline_fps"] = offline_fps(retargeter, frames)
     row = next(r for r in results["settings"] if (r["P"], r["V"]) == DEFAULT_SETTING)
     rss = results["memory_rss_mb"]
     results.update({

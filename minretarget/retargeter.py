@@ -35,18 +35,21 @@ class RetargetedFrame(NamedTuple):
 
 
 class Retargeter:
-    def __init__(self, weights, warn=True):
+    def __init__(self, weights, warn=True, workers=1):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
-        that looks like wrong units, a wrong up axis or (targets) not a T-pose."""
+        that looks like wrong units, a wrong up axis or (targets) not a T-pose.
+        ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
+        BLAS one thread when > 1)."""
         self.weights = weights
         self.warn = warn
+        self.workers = workers
         self.target = None
         self._state = None
 
     @classmethod
-    def from_weights(cls, path=None, warn=True):
+    def from_weights(cls, path=None, warn=True, workers=1):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
-        return cls(load_weights(path), warn)
+        return cls(load_weights(path), warn, workers)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -105,7 +108,7 @@ class Retargeter:
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
-        return self._step_joints(regress_joints(points, self.weights.skr))
+        return self._step_joints(regress_joints(points, self.weights.skr, self.workers))
 
     def step_skeleton(self, source_joints):
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR)."""
@@ -134,17 +137,16 @@ class Retargeter:
         transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
         return linear_blend_skinning(target.points, target.skin_weights, transforms), joints
 
-    def retarget_sequence(self, frames, workers=1, chunk=32):
+    def retarget_sequence(self, frames, chunk=32):
         """Retarget a whole recorded sequence at once (offline): the same result as ``run``,
         up to float32 rounding, faster per frame.
 
-        SKR runs on ``workers`` clouds side by side (see ``skr.regress_joints``), SMRM's
-        recurrence frame by frame, LBS on ``chunk`` frames per matrix product. The stream
-        restarts first, and ``state`` is left after the last frame, so ``step`` can go on.
+        SKR runs cloud after cloud (on ``workers`` threads each), SMRM's recurrence frame by
+        frame, LBS on ``chunk`` frames per matrix product. The stream restarts first, and
+        ``state`` is left after the last frame, so ``step`` can go on.
 
         Args:
             frames: (T, P, 3) float32 source clouds, metres (the same P in every frame).
-            workers: SKR threads (give BLAS one thread when > 1).
             chunk: frames per LBS product, bounding its memory to V x chunk x 12 floats.
         Returns:
             RetargetedFrame whose fields have a leading T axis: vertices (T, V, 3), joints
@@ -159,7 +161,7 @@ class Retargeter:
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
-        source_joints = regress_joints(frames, self.weights.skr, workers)
+        source_joints = regress_joints(frames, self.weights.skr, self.workers)
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):

@@ -6,6 +6,7 @@
 Batch norm is folded into the linear layers at export (training/export.py), so every layer
 here is a plain linear map with ReLU.
 """
+import functools
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -34,11 +35,11 @@ def regress_joints(points, weights, workers=1):
     Args:
         points: (P, 3) or (B, P, 3) float32, metres, any order; P >= MIN_POINTS.
         weights: SKRWeights.
-        workers: threads running clouds side by side (the kernel releases the GIL). Give
-            BLAS one thread then (``OPENBLAS_NUM_THREADS=1``): its own threads and these
-            would share the cores. Clouds are not stacked into one product per layer: a
-            cloud's (P, 256) activations stay in cache, a stack's do not, and that measured
-            up to twice slower per cloud.
+        workers: threads sharing each cloud's points (the kernels release the GIL; they
+            meet at the three max-pools). Give BLAS one thread then
+            (``OPENBLAS_NUM_THREADS=1`` or threadpoolctl), or its threads and these share
+            the cores. Clouds are never stacked into one product per layer: a cloud's
+            (P, 256) activations stay in cache, a stack's do not, which measured slower.
     Returns:
         (J, 3) or (B, J, 3) float32 joint positions, metres, in the points' frame.
     """
@@ -49,12 +50,50 @@ def regress_joints(points, weights, workers=1):
         raise ValueError(f"points has {points.shape[-2]} points per cloud; at least "
                          f"{MIN_POINTS} are needed")
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
-    if workers > 1 and len(batch) > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            joints = list(pool.map(lambda cloud: _regress_joints_kernel(cloud, weights), batch))
+    if workers > 1:
+        pool = _thread_pool(workers)
+        joints = [_regress_joints_shared(cloud, weights, pool, workers) for cloud in batch]
     else:
         joints = [_regress_joints_kernel(cloud, weights) for cloud in batch]
     return np.stack(joints) if points.ndim == 3 else joints[0]
+
+
+@functools.lru_cache(maxsize=None)
+def _thread_pool(workers):
+    """One lasting pool per size: a stream calls SKR every frame, and starting threads each
+    time would cost more than a small cloud's work. Idle threads wait without spinning."""
+    return ThreadPoolExecutor(workers, thread_name_prefix="minretarget-skr")
+
+
+def _regress_joints_shared(points, weights, pool, parts):
+    """``_regress_joints_kernel`` with the per-point layers on ``parts`` slices of the
+    points in ``pool``'s threads; the max-pools combine the slices' maxima."""
+    def pooled(function, slices):
+        return np.max(np.concatenate(list(pool.map(function, slices))), axis=0, keepdims=True)
+
+    x, centroid = _centred(points)
+    slices = np.array_split(x, parts)
+    net = weights.input_transform
+    input_transform = _transform_matrix(pooled(lambda s: _point_feature(s, net, 0), slices),
+                                        net.head)
+    first = weights.regressor.point[0]
+    slices = list(pool.map(lambda s: _first_layer(s, input_transform, first), slices))
+    net = weights.feature_transform
+    feature_transform = _transform_matrix(pooled(lambda s: _point_feature(s, net, 0), slices),
+                                          net.head)
+    net = weights.regressor
+    feature = pooled(lambda s: _point_feature(np.dot(s, feature_transform), net, 1), slices)
+    return _joints(feature, net.head, centroid)
+
+
+@kernel
+def _centred(points):
+    """(P, 3) -> the points less their centroid (P, 3), and the centroid (1, 3)."""
+    centroid = np.zeros((1, 3), dtype=np.float32)
+    for i in range(points.shape[0]):
+        centroid[0] += points[i]
+    centroid /= np.float32(points.shape[0])
+    return points - centroid, centroid
 
 
 @kernel
@@ -76,25 +115,35 @@ def _point_feature(x, net, first):
 
 
 @kernel
-def _transform(x, net):
-    """STN: x (P, k) -> (k, k) = identity + the net's prediction."""
-    k = x.shape[1]
-    transform = mlp(_point_feature(x, net, 0), net.head).reshape(k, k)
+def _transform_matrix(feature, head):
+    """STN head: the pooled feature (1, C) -> (k, k) = identity + the head's prediction."""
+    flat = mlp(feature, head)
+    k = int(np.sqrt(flat.shape[1]))
+    transform = flat.reshape(k, k)
     for i in range(k):
         transform[i, i] += np.float32(1.0)
     return transform
 
 
 @kernel
+def _first_layer(x, input_transform, layer):
+    """(P, 3) centred points -> (P, w0): the input transform, then point layer 0."""
+    return dense(np.dot(x, input_transform), layer, True)
+
+
+@kernel
+def _joints(feature, head, centroid):
+    """The pooled feature (1, C) -> (J, 3) joints: the head's offsets plus the centroid."""
+    return mlp(feature, head).reshape(-1, 3) + centroid
+
+
+@kernel
 def _regress_joints_kernel(points, weights):
-    centroid = np.zeros((1, 3), dtype=np.float32)
-    for i in range(points.shape[0]):
-        centroid[0] += points[i]
-    centroid /= np.float32(points.shape[0])
-    x = points - centroid                                                # (P, 3)
-    x = np.dot(x, _transform(x, weights.input_transform))                # (P, 3)
-    x = dense(x, weights.regressor.point[0], True)                       # (P, w0)
-    x = np.dot(x, _transform(x, weights.feature_transform))              # (P, w0)
+    x, centroid = _centred(points)                                       # (P, 3), (1, 3)
+    net = weights.input_transform
+    x = _first_layer(x, _transform_matrix(_point_feature(x, net, 0), net.head),
+                     weights.regressor.point[0])                          # (P, w0)
+    net = weights.feature_transform
+    x = np.dot(x, _transform_matrix(_point_feature(x, net, 0), net.head))  # (P, w0)
     feature = _point_feature(x, weights.regressor, 1)                    # (1, w2)
-    offsets = mlp(feature, weights.regressor.head)                       # (1, J*3)
-    return offsets.reshape(-1, 3) + centroid                             # (J, 3)
+    return _joints(feature, weights.regressor.head, centroid)            # (J, 3)
