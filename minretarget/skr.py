@@ -35,10 +35,10 @@ def regress_joints(points, weights, workers=1):
     Args:
         points: (P, 3) or (B, P, 3) float32, metres, any order; P >= MIN_POINTS.
         weights: SKRWeights.
-        workers: threads sharing each cloud's points (the kernels release the GIL; they
-            meet at the three max-pools). Give BLAS one thread then
-            (``OPENBLAS_NUM_THREADS=1`` or threadpoolctl), or its threads and these share
-            the cores. Clouds are never stacked into one product per layer: a cloud's
+        workers: threads (the kernels release the GIL): a batch's clouds go side by side, a
+            single cloud's points are shared (the threads meet at its three max-pools).
+            Give BLAS one thread then (``OPENBLAS_NUM_THREADS=1`` or threadpoolctl), or its
+            threads and these share the cores. Clouds are never stacked into one product per layer: a cloud's
             (P, 256) activations stay in cache, a stack's do not, which measured slower.
     Returns:
         (J, 3) or (B, J, 3) float32 joint positions, metres, in the points' frame.
@@ -50,9 +50,11 @@ def regress_joints(points, weights, workers=1):
         raise ValueError(f"points has {points.shape[-2]} points per cloud; at least "
                          f"{MIN_POINTS} are needed")
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
-    if workers > 1:
-        pool = _thread_pool(workers)
-        joints = [_regress_joints_shared(cloud, weights, pool, workers) for cloud in batch]
+    if workers > 1 and len(batch) > 1:   # whole clouds side by side: no meeting points
+        joints = list(_thread_pool(workers).map(
+            lambda cloud: _regress_joints_kernel(cloud, weights), batch))
+    elif workers > 1:                     # one cloud: its points shared
+        joints = [_regress_joints_shared(batch[0], weights, _thread_pool(workers), workers)]
     else:
         joints = [_regress_joints_kernel(cloud, weights) for cloud in batch]
     return np.stack(joints) if points.ndim == 3 else joints[0]

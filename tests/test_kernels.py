@@ -44,10 +44,12 @@ def test_skr_is_translation_equivariant_and_order_invariant(tiny_weights):
 def test_skr_batch_equals_per_item_calls(tiny_weights):
     batch = np.random.default_rng(3).normal(size=(5, 128, 3)).astype(np.float32)
     joints = regress_joints(batch, tiny_weights.skr)
-    shared = regress_joints(batch, tiny_weights.skr, workers=3)   # points on 3 threads
+    side_by_side = regress_joints(batch, tiny_weights.skr, workers=3)    # clouds on 3 threads
     for b in range(5):
         np.testing.assert_array_equal(joints[b], regress_joints(batch[b], tiny_weights.skr))
-        np.testing.assert_allclose(shared[b], joints[b], atol=1e-6)
+        np.testing.assert_array_equal(side_by_side[b], joints[b])
+        shared = regress_joints(batch[b], tiny_weights.skr, workers=3)     # points on 3 threads
+        np.testing.assert_allclose(shared, joints[b], atol=1e-6)
 
 
 def test_gru_layer_step_matches_twin(tiny_weights):
