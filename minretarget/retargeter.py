@@ -127,27 +127,29 @@ class Retargeter:
 
     def pose(self, rotations, root):
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
-        vertices and (J, 3) joints, exactly as ``step`` does after SMRM."""
+        vertices and (J, 3) joints, exactly as ``step`` does after SMRM; or T frames at once:
+        (T, J, 4) and (T, 3) -> (T, V, 3) and (T, J, 3)."""
         if self.target is None:
             raise RuntimeError("call set_target before pose")
         target = self.target
-        rotations = as_float32_array(rotations, "rotations", (NUM_JOINTS, 4))
-        root = as_float32_array(root, "root", (3,))
+        frames = (None,) if np.ndim(rotations) > 2 else ()                 # (T,) or one frame
+        rotations = as_float32_array(rotations, "rotations", frames + (NUM_JOINTS, 4))
+        root = as_float32_array(root, "root", rotations.shape[:-2] + (3,))
         joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
         transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
         return linear_blend_skinning(target.points, target.skin_weights, transforms), joints
 
-    def retarget_sequence(self, frames, chunk=32):
+    def retarget_sequence(self, frames):
         """Retarget a whole recorded sequence at once (offline): the same result as ``run``,
         up to float32 rounding, faster per frame.
 
         SKR runs cloud after cloud (on ``workers`` threads each), SMRM's recurrence frame by
-        frame, LBS on ``chunk`` frames per matrix product. The stream restarts first, and
-        ``state`` is left after the last frame, so ``step`` can go on.
+        frame, then ``pose`` takes all frames (LBS blends many frames per matrix product).
+        The stream restarts first, and ``state`` is left after the last frame, so ``step``
+        can go on.
 
         Args:
             frames: (T, P, 3) float32 source clouds, metres (the same P in every frame).
-            chunk: frames per LBS product, bounding its memory to V x chunk x 12 floats.
         Returns:
             RetargetedFrame whose fields have a leading T axis: vertices (T, V, 3), joints
             (T, J, 3), rotations (T, J, 4), root (T, 3), source_joints (T, J, 3).
@@ -167,10 +169,7 @@ class Retargeter:
         for t, joints in enumerate(source_joints):
             rotations[t], root[t], self._state = retarget_step(
                 self.weights.smrm, self._state, joints, self.target.tpose_joints)
-        target = self.target
-        joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
-        transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
-        vertices = linear_blend_skinning(target.points, target.skin_weights, transforms, chunk)
+        vertices, joints = self.pose(rotations, root)
         return RetargetedFrame(vertices, joints, rotations, root, source_joints)
 
     def run(self, frames):

@@ -38,8 +38,9 @@ def regress_joints(points, weights, workers=1):
         workers: threads (the kernels release the GIL): a batch's clouds go side by side, a
             single cloud's points are shared (the threads meet at its three max-pools).
             Give BLAS one thread then (``OPENBLAS_NUM_THREADS=1`` or threadpoolctl), or its
-            threads and these share the cores. Clouds are never stacked into one product per layer: a cloud's
-            (P, 256) activations stay in cache, a stack's do not, which measured slower.
+            threads and these share the cores. Clouds are never stacked into one product
+            per layer: a cloud's (P, 256) activations stay in cache, a stack's do not, which
+            measured slower.
     Returns:
         (J, 3) or (B, J, 3) float32 joint positions, metres, in the points' frame.
     """

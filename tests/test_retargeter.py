@@ -39,7 +39,7 @@ def test_retarget_sequence_equals_the_stream_and_can_continue(retargeter, tiny_s
     sources = np.stack([points[:100] for points in tiny_stream[1][:11]])   # one P for all
     streamed = list(retargeter.run(sources))
     retargeter.reset()
-    batched = retargeter.retarget_sequence(sources[:10], chunk=4)
+    batched = retargeter.retarget_sequence(sources[:10])
     for field in ("vertices", "joints", "rotations", "root", "source_joints"):
         np.testing.assert_allclose(getattr(batched, field),
                                    np.stack([getattr(f, field) for f in streamed[:10]]),

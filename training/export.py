@@ -121,7 +121,8 @@ def import_weights(weights, skr, smrm, skin):
                             (smrm.decoder, weights.smrm.decoder)):
             for i, layer in enumerate(layers):
                 for name, array in zip(("weight_ih", "weight_hh", "bias_ih", "bias_hh"),
-                                       (layer[0].T, layer[1].T, layer[2], layer[3])):
+                                       (layer.input_weight.T, layer.hidden_weight.T,
+                                        layer.input_bias, layer.hidden_bias)):
                     getattr(gru, f"{name}_l{i}").copy_(torch.from_numpy(array.copy()))
     _set_dense(smrm.rotation_head, weights.smrm.rotation_head)
     _set_dense(smrm.root_head, weights.smrm.root_head)

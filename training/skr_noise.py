@@ -2,8 +2,8 @@
 
     python -m training.skr_noise [--weights FILE] [--cmu DIR] [--sequences N] [--frames T]
 
-SMRM is trained on ground-truth skeletons plus noise (``SMRMStage.input_noise``,
-``input_bias_noise``). At run time its input is SKR's estimate, whose error has two parts
+SMRM is trained on ground-truth skeletons plus noise (``SMRMStage.input_noise``, or
+``input_noise_bias``, ``input_noise_frame`` and ``input_noise_autocorrelation``). At run time its input is SKR's estimate, whose error has two parts
 that a recurrent network must treat differently: a part that stays nearly constant along a
 clip (the body's shape misjudged, a bone too long) and a part that changes every frame
 (jitter from the fresh point sample). This plays validation trials (held-out subjects) on
@@ -42,10 +42,10 @@ def residuals(weights, motions, bodies, actor_hip_height, frames, points, rng):
 def noise_statistics(errors):
     """list of (T, J, 3) residuals -> bias and jitter standard deviations (metres)."""
     bias = np.stack([e.mean(axis=0) for e in errors])                     # (S, J, 3)
-    rest = np.concatenate([e - e.mean(axis=0) for e in errors])           # (sum T, J, 3)
-    lagged = [(e - e.mean(axis=0)) for e in errors]
-    autocorrelation = (sum(float((r[1:] * r[:-1]).sum()) for r in lagged)
-                       / sum(float((r[:-1] ** 2).sum()) for r in lagged))
+    rests = [e - e.mean(axis=0) for e in errors]                         # each (T, J, 3)
+    rest = np.concatenate(rests)                                          # (sum T, J, 3)
+    autocorrelation = (sum(float((r[1:] * r[:-1]).sum()) for r in rests)
+                       / sum(float((r[:-1] ** 2).sum()) for r in rests))
     return {"bias_std": float(bias.std()), "frame_std": float(rest.std()),
             "total_rms": float(np.sqrt(np.mean(np.concatenate(errors) ** 2))),
             "frame_lag1_autocorrelation": autocorrelation,
