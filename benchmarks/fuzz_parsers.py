@@ -76,8 +76,6 @@ KINDS = [("ply", ".ply", "points"), ("obj", ".obj", "points"), ("xyz", ".xyz", "
 
 def seeds():
     """A small valid file of every kind: {kind index: bytes}."""
-    import trimesh
-
     from minretarget.bvh import format_bvh
     from minretarget.config import ModelConfig
     from minretarget.skeletons import rig_to_bvh

@@ -9,9 +9,9 @@ import pytest
 from minretarget.bvh import parse_bvh, read_bvh, resample, world_transforms
 from minretarget.conventions import JOINT_INDEX
 from minretarget.kinematics import forward_kinematics
-from training.data.cmu import (CMU_BONES, LEAD_IN_FRAMES, canonical_world, capture_fps,
-                               cmu_tpose_joints, list_trials, load_motion, local_quaternions,
-                               tpose_joints)
+from minretarget.skeletons import CMU_BONES, canonical_world
+from training.data.cmu import (LEAD_IN_FRAMES, capture_fps, cmu_tpose_joints, list_trials,
+                               load_motion, local_quaternions, tpose_joints)
 
 CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu"
 WALK = CMU_DIR / "cgspeed" / "02" / "02_01.bvh.gz"

@@ -13,7 +13,7 @@ from minretarget.conventions import NUM_JOINTS  # noqa: E402
 from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # noqa: E402
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
-from training.data.datasets import CLIP_FRAMES, BuildConfig, augment, build  # noqa: E402
+from training.data.datasets import BuildConfig, augment, build  # noqa: E402
 
 ACTOR_HIP_HEIGHT = 0.9
 TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
@@ -72,10 +72,10 @@ def test_files_and_shapes(built):
     assert skin["weights"].shape == (6, 32, NUM_JOINTS) and skin["weights"].dtype == np.float16
     smrm = _load(out / "smrm_train.npz")
     # Windows of 30 frames every 10 inside each trial: 50 frames -> 3, 40 frames -> 2.
-    assert smrm["joints"].shape == (5, CLIP_FRAMES, NUM_JOINTS, 3)
-    assert smrm["rotations"].shape == (5, CLIP_FRAMES, NUM_JOINTS, 4)
+    assert smrm["joints"].shape == (5, 30, NUM_JOINTS, 3)
+    assert smrm["rotations"].shape == (5, 30, NUM_JOINTS, 4)
     assert smrm["bodies_tpose_joints"].shape == (2, NUM_JOINTS, 3)
-    assert _load(out / "smrm_val.npz")["joints"].shape == (2, CLIP_FRAMES, NUM_JOINTS, 3)
+    assert _load(out / "smrm_val.npz")["joints"].shape == (2, 30, NUM_JOINTS, 3)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["counts"]["test_sequences"] == 2 and manifest["counts"]["test_frames"] == 55
     assert sorted(p.name for p in (out / "test").iterdir()) == ["test_a.npz", "test_b.npz"]
@@ -171,6 +171,26 @@ def test_builds_are_deterministic(built, cache, tmp_path):
     assert other["counts"] == json.loads((out / "manifest.json").read_text())["counts"]
     assert not np.array_equal(_load(out / "skr_train.npz")["points"],
                               _load(tmp_path / "other" / "skr_train.npz")["points"])
+
+
+def test_only_smrm_with_longer_clips(built, cache, tmp_path):
+    out, _ = built
+    config = BuildConfig(**{**TINY.__dict__, "clip_frames": 40})
+    summary = build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, config, cache_dir=cache,
+                    show_progress=False, datasets=("smrm",))
+    assert sorted(p.name for p in tmp_path.rglob("*.npz")) == ["smrm_train.npz", "smrm_val.npz"]
+    # 40-frame windows every 10: 50 frames -> 2, 40 -> 1; validation's 45 frames -> 1.
+    long = _load(tmp_path / "smrm_train.npz")
+    assert long["joints"].shape == (3, 40, NUM_JOINTS, 3)
+    assert summary["counts"]["smrm_train"] == 3 and "skr_train" not in summary["counts"]
+    joints, _ = forward_kinematics(long["rotations"], long["root"], long["tpose_joints"][:, None])
+    np.testing.assert_allclose(long["joints"], joints, atol=1e-5)
+    # Targets are drawn from every training body, as in the full build.
+    np.testing.assert_array_equal(long["bodies_tpose_joints"],
+                                  _load(out / "smrm_train.npz")["bodies_tpose_joints"])
+    with pytest.raises(ValueError, match="unknown datasets"):
+        build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, config, cache_dir=cache,
+              show_progress=False, datasets=("smrm", "clips"))
 
 
 def test_augment_turns_about_y_and_shifts():

@@ -125,6 +125,43 @@ def test_init_trains_listed_stages_and_keeps_the_others(run, tmp_path):
     assert metadata["init"]["recipe"]["name"] == "tiny"
 
 
+def test_scratch_retrains_a_stage_as_from_random_initialisation(run, tmp_path):
+    """--init W --scratch smrm: SKR and SKIN are W's, SMRM is what training from scratch
+    gives (the ``all`` run's SMRM, same recipe and seeds)."""
+    main(["smrm", "--init", str(run / "run" / "weights.npz"), "--scratch", "smrm",
+          "--recipe", str(run / "tiny.json"), "--data", str(run),
+          "--out", str(tmp_path / "scratch"), "--threads", "1"])
+    whole = np.load(run / "run" / "weights.npz")
+    again = np.load(tmp_path / "scratch" / "weights.npz")
+    for key in whole.files:
+        if whole[key].dtype.kind == "f":
+            np.testing.assert_allclose(again[key], whole[key], rtol=1e-5, atol=1e-6,
+                                       err_msg=key)
+
+
+def test_set_overrides_the_recipe_and_clips_are_cut_to_length(run, tmp_path):
+    """--set smrm.clip_frames=5 trains on 5-frame windows; the run records the recipe."""
+    main(["smrm", "--init", str(run / "run" / "weights.npz"), "--scratch", "smrm",
+          "--set", "smrm.clip_frames=5", "--set", "smrm.rotation_cycle=0",
+          "--recipe", str(run / "tiny.json"), "--data", str(run),
+          "--out", str(tmp_path / "short"), "--threads", "1"])
+    recorded = json.loads((tmp_path / "short" / "recipe.json").read_text())
+    assert recorded["smrm"]["clip_frames"] == 5 and recorded["smrm"]["rotation_cycle"] == 0
+    metadata = json.loads(str(np.load(tmp_path / "short" / "weights.npz")["metadata"]))
+    assert metadata["recipe"]["smrm"]["clip_frames"] == 5
+    # Other windows, other losses: the SMRM differs from the 30-frame one.
+    assert not np.array_equal(np.load(tmp_path / "short" / "weights.npz")["smrm.root_head.bias"],
+                              np.load(run / "run" / "weights.npz")["smrm.root_head.bias"])
+    with pytest.raises(ValueError, match="clip_frames 31"):
+        main(["smrm", "--set", "smrm.clip_frames=31", "--recipe", str(run / "tiny.json"),
+              "--data", str(run), "--out", str(tmp_path / "long"), "--threads", "1"])
+    with pytest.raises(ValueError, match="unknown keys"):
+        load_recipe(run / "tiny.json", ["smrm.clip_length=10"])
+    with pytest.raises(ValueError, match="JSON value"):
+        load_recipe(run / "tiny.json", ["smrm.clip_frames=ten"])
+    assert load_recipe("cpu", ["skr.points=1024"]).skr.points == 1024
+
+
 def test_source_noise_has_the_profile_it_is_given():
     """Per joint: the clip-constant and frame parts' stds, and the frame part's lag-1
     autocorrelation, measured on many clips, are the recipe's."""

@@ -40,6 +40,7 @@ class SMRMStage:
     learning_rate: float = 1e-4
     discriminator_learning_rate: float = 1e-4
     discriminator_width: int = 256
+    clip_frames: int = 30        # frames of a training clip: random windows of the data's clips
     input_noise: float = 0.01    # metres of Gaussian noise on source joints, as SKR makes
     # Or noise shaped like SKR's measured error (python -m training.skr_noise): per joint,
     # the std (metres) of a part constant along a clip and of a part that changes from frame
@@ -87,8 +88,9 @@ def _build(cls, values, where):
     return cls(**kwargs)
 
 
-def load_recipe(path):
-    """A recipe from a JSON file (a path, or the name of a file in training/recipes)."""
+def load_recipe(path, overrides=()):
+    """A recipe from a JSON file (a path, or the name of a file in training/recipes), with
+    ``overrides``: "stage.key=value" strings (value in JSON, e.g. "smrm.clip_frames=10")."""
     path = Path(path)
     if not path.exists() and (RECIPES / f"{path}.json").exists():
         path = RECIPES / f"{path}.json"
@@ -96,4 +98,17 @@ def load_recipe(path):
         values = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: cannot read the recipe ({error})") from None
+    for override in overrides:
+        key, _, text = override.partition("=")
+        *parents, leaf = key.split(".")
+        where = values
+        for part in parents:
+            where = where.setdefault(part, {})
+            if not isinstance(where, dict):
+                raise ValueError(f"override {override!r}: {part!r} is not a section")
+        try:
+            where[leaf] = json.loads(text)
+        except json.JSONDecodeError:
+            raise ValueError(f"override {override!r}: expected key=value with a JSON value, "
+                             "e.g. smrm.clip_frames=10") from None
     return _build(Recipe, values, str(path))

@@ -2,12 +2,16 @@
 
     python -m training.train {skr,skin,smrm,all} --recipe cpu --data data --out runs/cpu
                              [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
+                             [--scratch STAGES] [--set KEY=VALUE ...]
 
 Each stage writes into --out: ``<stage>.pt`` (checkpoint, written atomically every eval),
 ``<stage>.csv`` (losses and validation metrics), ``<stage>.png`` (their plot). ``all`` then
 exports ``weights.npz`` (minretarget's format) recording the recipe, the data and the commit.
 Stages may be listed (``skr,smrm``); with ``--init WEIGHTS`` training starts from an exported
-file, stages not listed keep its networks, and the export happens after any stages.
+file, stages not listed keep its networks, and the export happens after any stages;
+``--scratch smrm`` retrains a stage from random initialisation while the others come from
+--init. ``--set smrm.clip_frames=10`` overrides one recipe value (ablations); the run's
+recipe.json and the weights' metadata record the recipe as run.
 --resume continues each unfinished stage from its checkpoint; finished stages are skipped.
 Validation uses the held-out training subjects and bodies (``*_val.npz``), never the test split.
 """
@@ -197,13 +201,19 @@ def mean_over_batches(count, size, function):
 
 # ----------------------------------------------------------------------------- stages
 
-def initial_models(recipe, init=None):
+def initial_models(recipe, init=None, scratch=()):
     """The three networks, freshly initialised or, with ``init`` (runtime Weights), loaded
-    from an exported file (its batch norms folded, see ``export.import_weights``)."""
-    models = {"skr": SkeletonRegressor(recipe.model), "smrm": MotionRetargeter(recipe.model),
-              "skin": SkinningField(recipe.model)}
+    from an exported file (its batch norms folded, see ``export.import_weights``) except the
+    stages named in ``scratch``, which stay fresh (an ablation of one stage)."""
+    def fresh():
+        return {"skr": SkeletonRegressor(recipe.model), "smrm": MotionRetargeter(recipe.model),
+                "skin": SkinningField(recipe.model)}
+    models = fresh()
     if init is not None:
-        import_weights(init, models["skr"], models["smrm"], models["skin"])
+        with torch.random.fork_rng(devices=[]):     # leave later draws (the discriminator) alone
+            loaded = fresh()
+        import_weights(init, loaded["skr"], loaded["smrm"], loaded["skin"])
+        models.update({name: loaded[name] for name in STAGES if name not in scratch})
     return models
 
 
@@ -308,7 +318,10 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
     stage_recipe = recipe.smrm
     train, val = (load_split(data_dir, f"smrm_{s}", device) for s in ("train", "val"))
     model = (model or MotionRetargeter(recipe.model)).to(device)
-    discriminator = MotionDiscriminator(recipe.model, stage_recipe.discriminator_width).to(device)
+    with torch.random.fork_rng(devices=[]):     # the same critic whichever stages ran before
+        torch.manual_seed(recipe.seed + 2)
+        discriminator = MotionDiscriminator(recipe.model,
+                                            stage_recipe.discriminator_width).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     optimizer_d = torch.optim.Adam(discriminator.parameters(),
                                    lr=stage_recipe.discriminator_learning_rate)
@@ -317,10 +330,25 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
                   stage_recipe.eval_every, recipe.seed + 2)
     bodies = train["bodies_tpose_joints"]
 
+    stored_frames = train["joints"].shape[1]
+    if not 3 <= stage_recipe.clip_frames <= stored_frames:
+        raise ValueError(f"smrm.clip_frames {stage_recipe.clip_frames}: must be at least 3 "
+                         f"(acceleration) and at most the data's {stored_frames}-frame clips "
+                         "(python -m training.data build --only smrm --clip-frames N)")
+
+    def clips(index, generator):
+        """(B, clip_frames, J, 3): a random window of each indexed clip."""
+        if stage_recipe.clip_frames == stored_frames:        # whole clips: no draw
+            return train["joints"][index]
+        start = torch.randint(stored_frames - stage_recipe.clip_frames + 1, (len(index),),
+                              generator=generator)
+        frames = start[:, None] + torch.arange(stage_recipe.clip_frames)
+        return train["joints"][index[:, None].to(device), frames.to(device)]
+
     def train_step(stage):
         count, size = len(train["joints"]), stage_recipe.batch_size
         index = stage.batch(count, size)
-        joints = train["joints"][index]
+        joints = clips(index, stage.generator)
         noise = source_noise(joints.shape, stage_recipe, stage.generator).to(device)
         target = bodies[torch.randint(len(bodies), (size,), generator=stage.generator)]
         loss, terms, joints_ab = smrm_losses(
@@ -329,7 +357,7 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        real = train["joints"][stage.batch(count, size)]
+        real = clips(stage.batch(count, size), stage.generator)
         loss_d = discriminator_loss(discriminator, real, joints_ab)
         optimizer_d.zero_grad(set_to_none=True)
         loss_d.backward()
@@ -397,19 +425,25 @@ def main(argv=None):
     parser.add_argument("--init", metavar="WEIGHTS",
                         help="start from an exported weights file (e.g. the shipped one) "
                              "instead of random initialisation; stages not trained keep it")
+    parser.add_argument("--scratch", type=stage_list, default=(), metavar="STAGES",
+                        help="with --init: these stages start from random initialisation "
+                             "(e.g. smrm, to retrain it alone for an ablation)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a recipe value (JSON), e.g. smrm.clip_frames=10; "
+                             "repeatable")
     parser.add_argument("--stop-at", type=int, metavar="STEP",
                         help="stop each stage at this step, checkpointed, to --resume later")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    recipe = load_recipe(args.recipe)
+    recipe = load_recipe(args.recipe, args.set)
     run_dir = Path(args.out)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "recipe.json").write_text(recipe.to_json())
     torch.manual_seed(recipe.seed)
     trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm}
     init = load_weights(args.init) if args.init else None
-    models, finished = initial_models(recipe, init), True
+    models, finished = initial_models(recipe, init, args.scratch), True
     for name in args.stage:
         start = time.perf_counter()
         models[name], done = trainers[name](recipe, args.data, run_dir, args.device,

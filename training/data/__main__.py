@@ -2,7 +2,8 @@
 
     python -m training.data build --cmu ../shared/data/cmu --out data [--bodies N] [--frames N]
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
-                                  [--clip-stride K] [--body-cache DIR]
+                                  [--clip-stride K] [--clip-frames C] [--body-cache DIR]
+                                  [--only KIND [KIND ...]]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
                                    [--points P] [--seed S]
@@ -12,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from .datasets import BuildConfig, build, cmu_motions
+from .datasets import DATASETS, BuildConfig, build, cmu_motions
 
 _DEFAULTS = BuildConfig()
 
@@ -28,9 +29,11 @@ def _build(args):
     start = time.perf_counter()
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
                          points=args.points, skin_samples=args.skin_samples,
-                         skin_points=args.skin_points, clip_stride=args.clip_stride)
+                         skin_points=args.skin_points, clip_stride=args.clip_stride,
+                         clip_frames=args.clip_frames)
     motions, actor_hip_height = cmu_motions(args.cmu)
-    summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache)
+    summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
+                    datasets=args.only)
     counts = summary["counts"]
     print(f"\nbuilt {args.out} in {time.perf_counter() - start:.0f} s "
           f"(datasets {summary['seconds']:.0f} s), {_size(summary['total_bytes'])} in all")
@@ -40,9 +43,13 @@ def _build(args):
           f"{actor_hip_height:.3f} m")
     print(f"  bodies: {counts['bodies_train']} train, {counts['bodies_val']} val, 8 test")
     for kind, unit in (("skr", "frames"), ("skin", "samples"), ("smrm", "clips")):
+        if kind not in args.only:
+            continue
         sizes = [summary["files"][f"{kind}_{s}.npz"] for s in ("train", "val")]
         print(f"  {kind}: {counts[kind + '_train']} train / {counts[kind + '_val']} val {unit} "
               f"({_size(sizes[0])} + {_size(sizes[1])})")
+    if "test" not in args.only:
+        return
     test_bytes = sum(v for k, v in summary["files"].items() if k.startswith("test/"))
     print(f"  test: {counts['test_sequences']} sequences, {counts['test_frames']} frames "
           f"({_size(test_bytes)})")
@@ -83,10 +90,14 @@ def main(argv=None):
             ("points", "points per source cloud (SKR and test frames)"),
             ("skin_samples", "SKIN training samples (validation: a tenth)"),
             ("skin_points", "surface points per SKIN sample"),
-            ("clip_stride", "frames between the starts of consecutive SMRM clips")):
+            ("clip_stride", "frames between the starts of consecutive SMRM clips"),
+            ("clip_frames", "frames of an SMRM clip")):
         build_parser.add_argument("--" + name.replace("_", "-"), type=int,
                                   default=getattr(_DEFAULTS, name),
                                   help=f"{help_text} (default {getattr(_DEFAULTS, name)})")
+    build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
+                              metavar="KIND", help=f"build only these of {DATASETS} "
+                              "(e.g. smrm with --clip-frames 60 into another folder)")
     preview_parser = commands.add_parser("preview", help="draw bodies walking into a png")
     preview_parser.add_argument("--out", required=True, help="output .png")
     preview_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")

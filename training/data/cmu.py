@@ -37,7 +37,7 @@ import numpy as np
 from minretarget.bvh import read_bvh, resample
 from minretarget.conventions import FPS, JOINT_INDEX, PARENTS
 from minretarget.kinematics import matrix_to_quaternion
-from minretarget.skeletons import CMU_BONES, canonical_world  # noqa: F401 (re-export)
+from minretarget.skeletons import canonical_world
 
 CENTIMETRES = 0.01
 

@@ -17,8 +17,9 @@ field.
     weights (N, Q, J) float16: the mesh's skinning weights interpolated at those points.
     rotations (N, J, 4) float32, root (N, 3) float32, tpose_joints (N, J, 3) float32,
     joints (N, J, 3) float32 (posed), body (N,) int32.
-``smrm_{train,val}.npz``: 30-frame skeleton clips for motion retargeting.
-    joints (N, 30, J, 3) float32, rotations (N, 30, J, 4) float32, root (N, 30, 3) float32,
+``smrm_{train,val}.npz``: skeleton clips of C frames (``clip_frames``, 30) for motion
+retargeting.
+    joints (N, C, J, 3) float32, rotations (N, C, J, 4) float32, root (N, C, 3) float32,
     tpose_joints (N, J, 3) float32 (the clip's body), body (N,) int32, and
     bodies_tpose_joints (B, J, 3) float32: every body of the split, to draw other targets from.
 ``test/<sequence>.npz``: one whole test trial (the DESIGN.md benchmark), source -> target.
@@ -58,7 +59,6 @@ from .bodies import benchmark_bodies, body_from_seed, pose_body, sampled_body_se
 from .cmu import cmu_tpose_joints, list_trials, load_motion
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
-CLIP_FRAMES = 30
 # Training subjects held out for validation (basketball and running; about 3,000 frames).
 VALIDATION_SUBJECTS = frozenset({"06", "09"})
 # Frames posed at once: bounds memory to about CHUNK x V x 12 float32 (~170 MB at 256).
@@ -80,6 +80,7 @@ class BuildConfig:
     skin_samples: int = 2_000    # SKIN training samples
     skin_points: int = 1024      # Q, surface points per SKIN sample
     clip_stride: int = 10        # frames between the starts of consecutive SMRM clips
+    clip_frames: int = 30        # frames of an SMRM clip (the paper: 30)
     max_shift: float = 1.0       # horizontal shift augmentation: uniform in +-max_shift, metres
 
     @property
@@ -132,9 +133,9 @@ class _Frames:
                        np.concatenate([m.root for m in motions]).astype(np.float32),
                        np.concatenate([[0], np.cumsum(lengths)]))
 
-    def clip_starts(self, stride):
-        """First frames of every CLIP_FRAMES window at ``stride`` inside one trial."""
-        return np.concatenate([np.arange(a, b - CLIP_FRAMES + 1, stride)
+    def clip_starts(self, stride, length):
+        """First frames of every ``length``-frame window at ``stride`` inside one trial."""
+        return np.concatenate([np.arange(a, b - length + 1, stride)
                                for a, b in zip(self.starts[:-1], self.starts[1:])] + [[]]
                               ).astype(np.int64)
 
@@ -261,13 +262,14 @@ def skin_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift
     return out
 
 
-def smrm_clips(frames, bodies, stride, actor_hip_height, rng, max_shift, progress=None):
-    """Every CLIP_FRAMES window (at ``stride``) once, each on a random body, augmented."""
-    starts = frames.clip_starts(stride)
+def smrm_clips(frames, bodies, stride, length, actor_hip_height, rng, max_shift,
+               progress=None):
+    """Every ``length``-frame window (at ``stride``) once, each on a random body, augmented."""
+    starts = frames.clip_starts(stride, length)
     count = len(starts)
     body = rng.integers(len(bodies), size=count).astype(np.int32)
     heading, shift = _augmentation(rng, (count,), max_shift)
-    window = starts[:, None] + np.arange(CLIP_FRAMES)                   # (N, 30)
+    window = starts[:, None] + np.arange(length)                        # (N, length)
     scale = np.array([m.hip_height / actor_hip_height for m in bodies], np.float32)[body]
     rotations, root = augment(frames.rotations[window],
                               frames.root[window] * scale[:, None, None],
@@ -321,9 +323,12 @@ def save_npz(path, arrays):
     os.replace(temporary, path)
 
 
+DATASETS = ("skr", "skin", "smrm", "skr_tpose", "test")
+
+
 def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=None,
-          show_progress=True):
-    """Build every dataset into ``out_dir``, deterministically from ``config.seed``.
+          show_progress=True, datasets=DATASETS):
+    """Build the datasets into ``out_dir``, deterministically from ``config.seed``.
 
     Args:
         motions: {'train': [...], 'val': [...], 'test': [...]} lists of motions, each with
@@ -334,6 +339,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
         config: a ``BuildConfig``.
         cache_dir: body cache folder (None: ``bodies.default_cache_dir()``).
         show_progress: draw a tqdm progress bar.
+        datasets: the kinds to build, of ``DATASETS`` (e.g. ("smrm",) for longer clips alone;
+            each kind draws from its own random stream, so it comes out as in a full build).
     Returns:
         a summary dict: counts, file sizes (bytes), seconds; also saved as manifest.json.
     """
@@ -347,15 +354,22 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                         for s in sampled_body_seeds(config.bodies, "train")],
               "val": [body_from_seed(s, cache_dir)
                       for s in sampled_body_seeds(config.val_bodies, "val")]}
-    targets, sources = benchmark_bodies(cache_dir)
+    unknown = sorted(set(datasets) - set(DATASETS))
+    if unknown:
+        raise ValueError(f"unknown datasets {unknown}; known: {DATASETS}")
+    targets, sources = benchmark_bodies(cache_dir) if "test" in datasets else ((), ())
     frames = {split: _Frames.of(motions[split]) for split in ("train", "val")}
     counts = {"skr_train": config.frames, "skr_val": max(1, config.frames // 10),
               "skr_tpose_train": config.tpose_frames,
               "skr_tpose_val": max(1, config.tpose_frames // 10),
               "skin_train": config.skin_samples, "skin_val": max(1, config.skin_samples // 10),
-              "smrm_train": len(frames["train"].clip_starts(config.clip_stride)),
-              "smrm_val": len(frames["val"].clip_starts(config.clip_stride)),
+              "smrm_train": len(frames["train"].clip_starts(config.clip_stride,
+                                                                config.clip_frames)),
+              "smrm_val": len(frames["val"].clip_starts(config.clip_stride,
+                                                            config.clip_frames)),
               "test_frames": sum(len(m.rotations) for m in motions["test"])}
+    counts = {name: count for name, count in counts.items()
+              if name.rsplit("_", 1)[0] in datasets}
     files = {}
     with tqdm(total=sum(counts.values()), unit="sample", disable=not show_progress,
               desc="building") as progress:
@@ -364,20 +378,25 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                           actor_hip_height=actor_hip_height, max_shift=config.max_shift,
                           progress=progress)
             for kind, make, sizes in (
-                    ("skr", skr_samples, dict(count=counts[f"skr_{split}"], points=config.points)),
-                    ("skin", skin_samples, dict(count=counts[f"skin_{split}"],
+                    ("skr", skr_samples, dict(count=counts.get(f"skr_{split}"),
+                                              points=config.points)),
+                    ("skin", skin_samples, dict(count=counts.get(f"skin_{split}"),
                                                 points=config.skin_points)),
-                    ("smrm", smrm_clips, dict(stride=config.clip_stride)),
+                    ("smrm", smrm_clips, dict(stride=config.clip_stride,
+                                                length=config.clip_frames)),
                     ("skr_tpose", lambda frames, actor_hip_height, **rest:
                      skr_tpose_samples(**rest),
-                     dict(count=counts[f"skr_tpose_{split}"], points=config.points))):
+                     dict(count=counts.get(f"skr_tpose_{split}"), points=config.points))):
+                if kind not in datasets:
+                    continue
                 name = f"{kind}_{split}"
                 progress.set_postfix_str(name)
                 path = out_dir / f"{name}.npz"
                 save_npz(path, make(rng=streams[name], **common, **sizes))
                 files[path.name] = path.stat().st_size
         pairs = []
-        for i, motion in enumerate(sorted(motions["test"], key=lambda m: m.name)):
+        test_motions = motions["test"] if "test" in datasets else []
+        for i, motion in enumerate(sorted(test_motions, key=lambda m: m.name)):
             # Cycle through the 16 (source, target) pairs: target fastest.
             source, target = sources[(i // len(targets)) % len(sources)], targets[i % len(targets)]
             progress.set_postfix_str(f"test {motion.name}")
