@@ -15,9 +15,9 @@ training.data build --only smrm --clip-frames 60``); shorter clips are random wi
 
 Then every variant retargets the test benchmark online (``accuracy.py``'s sequences; --quick:
 its subset): SKR runs once per sequence (the shipped SKR, shared by all variants) and each
-SMRM streams (a) those SKR source skeletons, the whole pipeline, and (b) the true source
-joints, SMRM alone. Prints and writes one table per input, rows = variants, the metrics of
-``minretarget.metrics`` averaged over frames.
+SMRM streams (a) those SKR source skeletons, smoothed as ``Retargeter`` does by default: the
+whole pipeline, and (b) the true source joints, unsmoothed: SMRM alone. Prints and writes one
+table per input, rows = variants, the metrics of ``minretarget.metrics`` averaged over frames.
 """
 import argparse
 import json
@@ -31,6 +31,7 @@ import numpy as np
 from accuracy import load_sequence, select_sequences, stream
 from minretarget.metrics import METRIC_NAMES, evaluate
 from minretarget.retargeter import Retargeter
+from minretarget.smoothing import Smoothing
 from minretarget.weights import DEFAULT_WEIGHTS, load_weights
 
 # variant -> (run folder under --runs, recipe overrides, data folder under --data or None)
@@ -68,7 +69,10 @@ def variant_metrics(weights, sequence, skr_joints):
     retargeter.set_target(sequence["target_tpose_points"])
     truth = sequence["target_joints"], sequence["target_points"]
     out = {}
-    for name, source_joints in zip(INPUTS, (skr_joints, sequence["source_joints"])):
+    # SKR's joints smoothed as the Retargeter does by default; the true joints as they are.
+    for name, source_joints, smoothing in zip(INPUTS, (skr_joints, sequence["source_joints"]),
+                                              (Smoothing(), None)):
+        retargeter.smoothing = smoothing
         joints, vertices = stream(retargeter, source_joints)
         out[name] = evaluate(joints, truth[0], vertices, truth[1],
                              rest_points=sequence["target_tpose_points"])
@@ -103,7 +107,7 @@ def main(argv=None):
     if missing:
         sys.exit(f"no weights for {missing}: run with --train")
     variants = {v: load_weights(p) for v, p in paths.items()}
-    shipped = Retargeter(load_weights(), warn=False)
+    shipped = Retargeter(load_weights(), warn=False, smoothing=None)       # SKR's raw joints
     sequence_paths, frames = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")),
                                               args.quick)
     started, totals, count = time.perf_counter(), {}, 0

@@ -5,13 +5,16 @@
 
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
-    model                the weights given (default: the shipped weights)
-    analytic             SKR source bones, each target bone rotated onto its source bone
-                         (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
-    oracle source        ground-truth source joints instead of SKR
+    model                the weights given (default: the shipped weights), as ``Retargeter``
+                         runs them by default: SKR's joints smoothed over time
+                         (minretarget.smoothing) before SMRM
+    model, no smoothing  the same with SKR's joints as they come (the paper's pipeline)
+    analytic             the model's (smoothed) source bones, each target bone rotated onto its
+                         source bone (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
+    oracle source        ground-truth source joints instead of SKR (not smoothed)
     oracle target        ground-truth target T-pose joints and skinning weights instead of
-                         SKR + SKIN
-    oracle both          both of the above
+                         SKR + SKIN (SKR's joints smoothed, as the model's)
+    oracle both          both of the above (not smoothed)
     paper                the paper's Table 4, reported on its own SMPL test set (not this one)
 Every row but ``paper`` is averaged over frames. If DIR/test is absent, the benchmark data is
 built first (python -m training.data build). --quick: a fixed subset (the first 150 frames of
@@ -35,7 +38,8 @@ from minretarget.weights import load_weights
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
-ROWS = ("model", "analytic", "oracle source", "oracle target", "oracle both")
+ROWS = ("model", "model, no smoothing", "analytic", "oracle source", "oracle target",
+        "oracle both")
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 
 
@@ -61,17 +65,27 @@ def stream(retargeter, source_joints):
 
 
 def run_sequence(weights, sequence):
-    """Every row's (joints, vertices) for one test sequence, and the seconds SKR+SMRM took."""
-    learned, oracle_rig = Retargeter(weights), Retargeter(weights)
+    """Every row's (joints, vertices) for one test sequence, and the seconds the online
+    model without smoothing took (SKR + SMRM + FK + LBS; the smoothing adds microseconds)."""
     points = sequence["target_tpose_points"]
+    learned, raw = Retargeter(weights), Retargeter(weights, smoothing=None)
     learned.set_target(points)
-    oracle_rig.set_target(points, tpose_joints=sequence["target_tpose_joints"],
-                          skin_weights=sequence["target_weights"])
+    raw.set_target(points, tpose_joints=learned.target.tpose_joints,
+                   skin_weights=learned.target.skin_weights)
+    oracle_rig, oracle_rig_raw = Retargeter(weights), Retargeter(weights, smoothing=None)
+    for retargeter in (oracle_rig, oracle_rig_raw):
+        retargeter.set_target(points, tpose_joints=sequence["target_tpose_joints"],
+                              skin_weights=sequence["target_weights"])
     start = time.perf_counter()
-    frames = list(learned.run(sequence["source_points"]))
+    frames = list(raw.run(sequence["source_points"]))
     seconds = time.perf_counter() - start
+    unsmoothed = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
+    raw_joints = np.stack([f.source_joints for f in frames])
+    # The default model: the same SKR joints, smoothed by step_skeleton as step would.
+    learned.reset()
+    frames = [learned.step_skeleton(joints) for joints in raw_joints]
     model = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
-    skr_joints = np.stack([f.source_joints for f in frames])
+    skr_joints = np.stack([f.source_joints for f in frames])                  # smoothed
 
     # Analytic: the same source skeletons and target rig, rotations from bone alignment, and
     # the root scaled like SMRM's (running mean of the source's leg length).
@@ -80,10 +94,10 @@ def run_sequence(weights, sequence):
     root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
     analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)
-    rows = {"model": model, "analytic": analytic,
-            "oracle source": stream(learned, sequence["source_joints"]),
-            "oracle target": stream(oracle_rig, skr_joints),
-            "oracle both": stream(oracle_rig, sequence["source_joints"])}
+    rows = {"model": model, "model, no smoothing": unsmoothed, "analytic": analytic,
+            "oracle source": stream(raw, sequence["source_joints"]),
+            "oracle target": stream(oracle_rig, raw_joints),
+            "oracle both": stream(oracle_rig_raw, sequence["source_joints"])}
     return rows, seconds
 
 

@@ -4,7 +4,8 @@ Files in the output folder while a run goes on (removed when it completes):
     checkpoint.npz    replaced atomically at the start, every ``CHECKPOINT_EVERY`` frames
                       and at Ctrl-C: ``frames_done``; the SMRM state after those frames
                       (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
-                      ``previous_root``, ``leg_length_sum`` float64, ``frames_seen``); ``run``,
+                      ``previous_joints``, ``joint_velocity``, ``leg_length_sum`` float64,
+                      ``frames_seen``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
                       Plain arrays: it loads without pickle.
     checkpoint.track  the small per-frame arrays, one float32 record a frame, appended as
@@ -35,7 +36,7 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 1
+VERSION = 2          # 2: the state holds the smoothed joints and their speed
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -116,16 +117,18 @@ def _digest(arrays):
     return digest.hexdigest()
 
 
-def run_record(source, target, weights, formats, space, points, seed):
+def run_record(source, target, weights, formats, space, points, seed, smoothing=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
-    (SHA-256 of their arrays), the formats, units, up axis and the resampling."""
+    (SHA-256 of their arrays), the formats, units, up axis, the resampling and the
+    smoothing (``smoothing.Smoothing`` or None)."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
-            "points": points, "seed": seed}
+            "points": points, "seed": seed,
+            "smoothing": None if smoothing is None else list(smoothing)}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):
@@ -135,9 +138,7 @@ def save_checkpoint(out_dir, run, state, frames_done, track):
     arrays = {"version": np.array(VERSION), "run": np.array(json.dumps(run, sort_keys=True)),
               "frames_done": np.array(frames_done, np.int64)}
     if state is not None:
-        arrays.update(encoder_hidden=state.encoder_hidden, decoder_hidden=state.decoder_hidden,
-                      previous_root=state.previous_root,
-                      leg_length_sum=np.array(state.leg_length_sum, np.float64),
+        arrays.update(state._asdict(), leg_length_sum=np.array(state.leg_length_sum, np.float64),
                       frames_seen=np.array(state.frames_seen, np.int64))
     with atomic_write(Path(out_dir) / CHECKPOINT) as file:
         np.savez(file, **arrays)
@@ -171,10 +172,9 @@ def load_checkpoint(out_dir, run, weights):
     if frames_done == 0:
         return 0, None
     try:
-        state = MotionState(arrays["encoder_hidden"], arrays["decoder_hidden"],
-                            arrays["previous_root"], float(arrays["leg_length_sum"]),
-                            int(arrays["frames_seen"]))
-        state = check_state(weights.smrm, state)
+        state = MotionState(**{name: arrays[name] for name in MotionState._fields})
+        state = check_state(weights.smrm, state._replace(
+            leg_length_sum=float(state.leg_length_sum), frames_seen=int(state.frames_seen)))
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: bad saved state: {error}") from None
     if state.frames_seen != frames_done:

@@ -30,6 +30,7 @@ from .extras import MissingExtra, require
 from .outputs import FORMATS, frame_name, open_writers, parse_formats
 from .render import render
 from .retargeter import Retargeter
+from .smoothing import Smoothing
 from .sources import load_sample, open_source, read_target
 from .units import CANONICAL, UNITS, UP_AXES, make_space
 from .validation import InputWarning, check_body
@@ -38,7 +39,7 @@ from .weights import DEFAULT_WEIGHTS
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
-def load_retargeter(weights=None):
+def load_retargeter(weights=None, smoothing=Smoothing()):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -47,7 +48,7 @@ def load_retargeter(weights=None):
             "with minretarget once the model is trained. Pass --weights FILE to use a weights "
             "file of your own (python -m training.train ... exports one).")
     # warn=False: the command line checks the inputs itself, naming files and options.
-    return Retargeter.from_weights(weights, warn=False)
+    return Retargeter.from_weights(weights, warn=False, smoothing=smoothing)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -81,7 +82,10 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         raise ValueError(f"{source.path}: holds no frames")
     tqdm = require("tqdm", "the progress bar").tqdm
     out_dir = Path(out_dir)
-    run = run_record(source, retargeter.target, retargeter.weights, formats, space, **settings)
+    if source.kind != "points":
+        retargeter.smoothing = None     # a skeleton source is clean: smoothing would only lag
+    run = run_record(source, retargeter.target, retargeter.weights, formats, space,
+                     smoothing=retargeter.smoothing, **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
         source = open_at(start)
@@ -133,7 +137,7 @@ def _retarget(args):
     start = time.perf_counter()
     space = make_space(args.units, args.up_axis)
     formats = parse_formats(args.format)
-    retargeter = load_retargeter(args.weights)
+    retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing())
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -225,6 +229,10 @@ def build_parser():
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
+    retarget.add_argument("--no-smoothing", action="store_true",
+                          help="feed SMRM the source skeleton of each point cloud as SKR finds "
+                               "it (default: smoothed over time against jitter; skeleton "
+                               "sources are never smoothed)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

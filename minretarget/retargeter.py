@@ -13,6 +13,7 @@ from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import regress_joints
+from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
 from .validation import as_float32_array, as_point_cloud, check_body
 from .weights import load_weights
@@ -31,25 +32,29 @@ class RetargetedFrame(NamedTuple):
     joints: np.ndarray          # (J, 3) float32 the target's posed joints, metres
     rotations: np.ndarray       # (J, 4) float32 local joint quaternions (w, x, y, z)
     root: np.ndarray            # (3,) float32 pelvis position, metres
-    source_joints: np.ndarray   # (J, 3) float32 the source skeleton SKR saw, metres
+    source_joints: np.ndarray   # (J, 3) float32 the source skeleton SMRM saw, metres
 
 
 class Retargeter:
-    def __init__(self, weights, warn=True, workers=1):
+    def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing()):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
-        BLAS one thread when > 1)."""
+        BLAS one thread when > 1).
+        ``smoothing``: the source skeleton's smoothing over time (``smoothing.Smoothing``:
+        against SKR's frame-to-frame jitter), or None for the joints as they come (the
+        paper's pipeline and the torch reference)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
+        self.smoothing = check_smoothing(smoothing)
         self.target = None
         self._state = None
 
     @classmethod
-    def from_weights(cls, path=None, warn=True, workers=1):
+    def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing()):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
-        return cls(load_weights(path), warn, workers)
+        return cls(load_weights(path), warn, workers, smoothing)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -111,7 +116,8 @@ class Retargeter:
         return self._step_joints(regress_joints(points, self.weights.skr, self.workers))
 
     def step_skeleton(self, source_joints):
-        """Retarget one frame given the source skeleton (J, 3) directly (skips SKR)."""
+        """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; it is
+        smoothed like SKR's unless ``smoothing`` is None)."""
         if self.target is None:
             raise RuntimeError("call set_target before step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
@@ -121,9 +127,10 @@ class Retargeter:
 
     def _step_joints(self, source_joints):
         rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
-                                                     source_joints, self.target.tpose_joints)
+                                                     source_joints, self.target.tpose_joints,
+                                                     self.smoothing)
         vertices, joints = self.pose(rotations, root)
-        return RetargetedFrame(vertices, joints, rotations, root, source_joints)
+        return RetargetedFrame(vertices, joints, rotations, root, self._state.previous_joints)
 
     def pose(self, rotations, root):
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
@@ -168,7 +175,9 @@ class Retargeter:
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):
             rotations[t], root[t], self._state = retarget_step(
-                self.weights.smrm, self._state, joints, self.target.tpose_joints)
+                self.weights.smrm, self._state, joints, self.target.tpose_joints,
+                self.smoothing)
+            source_joints[t] = self._state.previous_joints
         vertices, joints = self.pose(rotations, root)
         return RetargetedFrame(vertices, joints, rotations, root, source_joints)
 

@@ -1,6 +1,7 @@
 """Stage 2, SMRM: skeletal motion retargeting, one frame at a time with explicit GRU state.
 
 Per frame, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 3):
+    0. x_t smoothed over time (``minretarget.smoothing``, when asked): SMRM sees the result
     1. heading H_t: the turn about +Y from +Z to the way the source faces (hips and shoulders);
        the network sees and predicts everything in this body-aligned frame
     2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0])
@@ -18,6 +19,7 @@ import numpy as np
 from ._jit import kernel
 from .conventions import NUM_JOINTS
 from .nn import Dense, dense, sigmoid
+from .smoothing import _parameters, _smooth_kernel, check_smoothing
 from .validation import as_float32_array
 
 
@@ -39,7 +41,8 @@ class MotionState(NamedTuple):
     """Everything SMRM carries from one frame to the next."""
     encoder_hidden: np.ndarray   # (layers, H) float32
     decoder_hidden: np.ndarray   # (layers, H) float32
-    previous_root: np.ndarray    # (3,) float32 source root of the last frame, metres
+    previous_joints: np.ndarray  # (J, 3) float32 the source joints SMRM saw last frame, metres
+    joint_velocity: np.ndarray   # (J, 3) float32 their speed estimate (smoothing), m/s
     leg_length_sum: float        # sum of the source leg lengths seen, metres
     frames_seen: int
 
@@ -48,19 +51,22 @@ def initial_state(weights, first_joints):
     """The state before a stream whose first source frame has joints ``first_joints`` (J, 3)."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     zeros = np.zeros((layers, hidden), dtype=np.float32)
-    return MotionState(zeros, zeros.copy(), np.array(first_joints[0], dtype=np.float32), 0.0, 0)
+    first_joints = np.array(first_joints, dtype=np.float32)
+    return MotionState(zeros, zeros.copy(), first_joints, np.zeros_like(first_joints), 0.0, 0)
 
 
 def check_state(weights, state):
     """A MotionState checked against ``weights`` (e.g. one read back from a file): hidden
-    states (layers, H), a finite (3,) root, a count and a finite sum >= 0. Returns it with
-    C-contiguous float32 arrays; ValueError names the field."""
+    states (layers, H), finite (J, 3) joints and velocities, a count and a finite sum >= 0.
+    Returns it with C-contiguous float32 arrays; ValueError names the field."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     if not isinstance(state, MotionState):
         raise ValueError(f"state must be a MotionState, got {type(state).__name__}")
     encoder = as_float32_array(state.encoder_hidden, "state.encoder_hidden", (layers, hidden))
     decoder = as_float32_array(state.decoder_hidden, "state.decoder_hidden", (layers, hidden))
-    previous_root = as_float32_array(state.previous_root, "state.previous_root", (3,))
+    previous = as_float32_array(state.previous_joints, "state.previous_joints",
+                                (NUM_JOINTS, 3))
+    velocity = as_float32_array(state.joint_velocity, "state.joint_velocity", (NUM_JOINTS, 3))
     try:
         leg_sum, frames = float(state.leg_length_sum), int(state.frames_seen)
     except (TypeError, ValueError, OverflowError):                  # None, "x", inf
@@ -68,10 +74,10 @@ def check_state(weights, state):
     if frames < 0 or frames != state.frames_seen or not 0 <= leg_sum < np.inf:
         raise ValueError(f"state: frames_seen {state.frames_seen!r} and leg_length_sum "
                          f"{state.leg_length_sum!r} must be a count and a finite sum >= 0")
-    return MotionState(encoder, decoder, previous_root, leg_sum, frames)
+    return MotionState(encoder, decoder, previous, velocity, leg_sum, frames)
 
 
-def retarget_step(weights, state, source_joints, target_tpose):
+def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
     """Retarget one frame.
 
     Args:
@@ -79,20 +85,25 @@ def retarget_step(weights, state, source_joints, target_tpose):
         state: MotionState after the previous frame, or None for a stream's first frame.
         source_joints: (J, 3) float32 source joint positions, metres.
         target_tpose: (J, 3) float32 target T-pose joints, metres.
+        smoothing: ``smoothing.Smoothing`` to smooth the source joints over time first, or
+            None to use them as they are (what the torch reference does).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
-        and the new MotionState.
+        and the new MotionState (its ``previous_joints``: the source joints SMRM saw).
     """
     source_joints = as_float32_array(source_joints, "source_joints", (NUM_JOINTS, 3))
     target_tpose = as_float32_array(target_tpose, "target_tpose", (NUM_JOINTS, 3))
+    smoothing = check_smoothing(smoothing)
     if state is None:
         state = initial_state(weights, source_joints)
+    seen, velocity = _smooth_kernel(source_joints, state.previous_joints,
+                                    state.joint_velocity, *_parameters(smoothing))
     encoder_hidden = state.encoder_hidden.copy()
     decoder_hidden = state.decoder_hidden.copy()
     rotations, root, leg_sum = _retarget_step_kernel(
-        weights, source_joints, target_tpose, encoder_hidden, decoder_hidden,
-        state.previous_root, float(state.leg_length_sum), int(state.frames_seen))
-    new_state = MotionState(encoder_hidden, decoder_hidden, source_joints[0].copy(), leg_sum,
+        weights, seen, target_tpose, encoder_hidden, decoder_hidden,
+        state.previous_joints[0], float(state.leg_length_sum), int(state.frames_seen))
+    new_state = MotionState(encoder_hidden, decoder_hidden, seen, velocity, leg_sum,
                             state.frames_seen + 1)
     return rotations, root, new_state
 

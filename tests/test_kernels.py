@@ -106,7 +106,8 @@ def test_initial_state_is_zero_with_the_first_root(tiny_weights):
     joints = np.random.default_rng(6).normal(size=(NUM_JOINTS, 3)).astype(np.float32)
     state = initial_state(tiny_weights.smrm, joints)
     assert not state.encoder_hidden.any() and not state.decoder_hidden.any()
-    np.testing.assert_array_equal(state.previous_root, joints[0])
+    np.testing.assert_array_equal(state.previous_joints, joints)
+    assert not state.joint_velocity.any()
 
 
 def test_skinning_weights_match_twin_and_are_a_partition_of_unity(tiny_weights):

@@ -83,3 +83,21 @@ def linear_blend_skinning(points, skin_weights, transforms):
     homogeneous = np.concatenate([points, np.ones((len(points), 1))], axis=1)     # (V, 4)
     per_joint = np.einsum("jab,vb->vja", transforms.astype(np.float64), homogeneous)
     return np.einsum("vj,vja->va", skin_weights, per_joint)
+
+
+def one_euro(frames, min_cutoff, beta, derivative_cutoff, fps=30.0):
+    """(T, J, 3) joints -> (T, J, 3) One-Euro filtered, float64 (minretarget.smoothing's
+    kernel, written from the filter's equations over a whole sequence)."""
+    frames = np.asarray(frames, np.float64)
+
+    def factor(cutoff):
+        return 1.0 - 1.0 / (1.0 + 2.0 * np.pi * cutoff / fps)
+
+    out, velocity = np.empty_like(frames), np.zeros_like(frames[0])
+    out[0] = frames[0]
+    for t in range(1, len(frames)):
+        velocity = velocity + factor(derivative_cutoff) * ((frames[t] - out[t - 1]) * fps
+                                                            - velocity)
+        speed = np.linalg.norm(velocity, axis=-1, keepdims=True)                # (J, 1)
+        out[t] = out[t - 1] + factor(min_cutoff + beta * speed) * (frames[t] - out[t - 1])
+    return out
