@@ -1,6 +1,7 @@
 """Accuracy metrics of the retargeting benchmark (DESIGN.md, "Accuracy protocol").
 
-Pure NumPy functions, float64 inside whatever the input dtype. Every metric compares a
+NumPy functions (MEDL's loop over edges is a numba kernel), float64 inside whatever the input
+dtype. Every metric compares a
 predicted sequence ``pred`` with the ground truth ``gt`` of the same shape (T, N, 3): T frames
 of N points, N = J = 22 joints or N = V target points. Lengths are metres; time is in frames
 at ``conventions.FPS`` (30) frames per second.
@@ -42,13 +43,11 @@ MEDL (metres)
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._jit import kernel
 from .conventions import FPS, JOINT_INDEX, UP_AXIS
 
 # Each metric's name in the tables, in the order ``evaluate`` returns them.
 METRIC_NAMES = ("MPJPE", "PA-MPJPE", "Acc", "PA-Acc", "MPVD", "PA-MPVD", "MEDL")
-
-# Values (not bytes) per temporary array in ``medl``'s blocks of frames: 32 MiB of float64.
-_BLOCK_VALUES = 1 << 22
 
 
 # ----------------------------------------------------------------------------- input checks
@@ -265,16 +264,24 @@ def medl(pred, gt, k=6, rest=None):
         if graph_points.shape != gt.shape[1:]:
             raise ValueError(f"rest must have shape (V, 3) with V = {gt.shape[1]} as in gt, got "
                              f"rest {graph_points.shape} and gt {gt.shape}")
-    i, j = knn_edges(graph_points, k).T                             # (E,), (E,)
-    # Blocks of frames, so that a long sequence of a dense target never holds (T, E, 3) at once.
-    block = max(1, _BLOCK_VALUES // (3 * len(i)))
+    edges = knn_edges(graph_points, k)                              # (E, 2)
+    return float(_edge_length_difference_sum(pred, gt, edges) / (pred.shape[0] * len(edges)))
+
+
+@kernel
+def _edge_length_difference_sum(pred, gt, edges):
+    """Sum over frames and edges of | |pred_i - pred_j| - |gt_i - gt_j| |: (T, V, 3) float64,
+    (E, 2) int64. A loop, not (T, E, 3) temporaries: ten times faster on a dense target."""
     total = 0.0
-    for start in range(0, pred.shape[0], block):
-        p, g = pred[start:start + block], gt[start:start + block]   # (b, V, 3)
-        pred_length = np.linalg.norm(p[:, i] - p[:, j], axis=-1)    # (b, E)
-        gt_length = np.linalg.norm(g[:, i] - g[:, j], axis=-1)      # (b, E)
-        total += np.abs(pred_length - gt_length).sum()
-    return float(total / (pred.shape[0] * len(i)))
+    for t in range(pred.shape[0]):
+        for e in range(edges.shape[0]):
+            a, b = edges[e, 0], edges[e, 1]
+            p = np.sqrt((pred[t, a, 0] - pred[t, b, 0]) ** 2 + (pred[t, a, 1] - pred[t, b, 1]) ** 2
+                        + (pred[t, a, 2] - pred[t, b, 2]) ** 2)
+            g = np.sqrt((gt[t, a, 0] - gt[t, b, 0]) ** 2 + (gt[t, a, 1] - gt[t, b, 1]) ** 2
+                        + (gt[t, a, 2] - gt[t, b, 2]) ** 2)
+            total += abs(p - g)
+    return total
 
 
 def jitter(points):
