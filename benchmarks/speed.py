@@ -192,7 +192,7 @@ def onnx_times(reference, frames, threads, repeats):
     with torch.no_grad():
         _, state = reference(torch.from_numpy(frames[0]), None)
     inputs = (torch.from_numpy(frames[1]),) + tuple(state)
-    names = ["points", "encoder_hidden", "decoder_hidden", "previous_root", "leg_length_sum",
+    names = ["points", "encoder_hidden", "decoder_hidden", "previous_root", "source_leg_length",
              "frames_seen"]
     start = time.perf_counter()
     with torch.no_grad(), tempfile.TemporaryDirectory() as directory:

@@ -4,7 +4,7 @@ Files in the output folder while a run goes on (removed when it completes):
     checkpoint.npz    replaced atomically at the start, every ``CHECKPOINT_EVERY`` frames
                       and at Ctrl-C: ``frames_done``; the SMRM state after those frames
                       (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
-                      ``previous_joints``, ``joint_velocity``, ``leg_length_sum`` float64,
+                      ``previous_joints``, ``joint_velocity``, ``source_leg_length`` float64,
                       ``frames_seen``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
                       Plain arrays: it loads without pickle.
@@ -36,7 +36,7 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 2          # 2: the state holds the smoothed joints and their speed
+VERSION = 2          # 2: the state holds the smoothed joints, their speed, the longest leg
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -138,7 +138,8 @@ def save_checkpoint(out_dir, run, state, frames_done, track):
     arrays = {"version": np.array(VERSION), "run": np.array(json.dumps(run, sort_keys=True)),
               "frames_done": np.array(frames_done, np.int64)}
     if state is not None:
-        arrays.update(state._asdict(), leg_length_sum=np.array(state.leg_length_sum, np.float64),
+        arrays.update(state._asdict(),
+                      source_leg_length=np.array(state.source_leg_length, np.float64),
                       frames_seen=np.array(state.frames_seen, np.int64))
     with atomic_write(Path(out_dir) / CHECKPOINT) as file:
         np.savez(file, **arrays)
@@ -174,7 +175,7 @@ def load_checkpoint(out_dir, run, weights):
     try:
         state = MotionState(**{name: arrays[name] for name in MotionState._fields})
         state = check_state(weights.smrm, state._replace(
-            leg_length_sum=float(state.leg_length_sum), frames_seen=int(state.frames_seen)))
+            source_leg_length=float(state.source_leg_length), frames_seen=int(state.frames_seen)))
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: bad saved state: {error}") from None
     if state.frames_seen != frames_done:
