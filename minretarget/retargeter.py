@@ -130,7 +130,9 @@ class Retargeter:
                                                      source_joints, self.target.tpose_joints,
                                                      self.smoothing)
         vertices, joints = self.pose(rotations, root)
-        return RetargetedFrame(vertices, joints, rotations, root, self._state.previous_joints)
+        # A copy: the state's own array must not change if the caller edits the frame's.
+        return RetargetedFrame(vertices, joints, rotations, root,
+                               self._state.previous_joints.copy())
 
     def pose(self, rotations, root):
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
