@@ -10,8 +10,8 @@ other (``python -m training.train smrm --init <shipped> --scratch smrm --recipe 
 SKR and SKIN are the shipped ones, so every variant sees the same source skeletons and target
 rig. The 60-frame variant trains on ``DATA/clip60`` (built first when absent: ``python -m
 training.data build --only smrm --clip-frames 60``); shorter clips are random windows of the
-30-frame clips. On this 2-core machine a 1000-step variant takes ~3 min (5 frames) to ~35 min
-(60 frames) of one core.
+30-frame clips. On this 2-core machine (one core each, the other busy) the 1000-step variants
+took 4 min (5 frames), 7, 9, 23 (30), 34 (60) and 20 (no rotation cycle): 95 minutes in all.
 
 Then every variant retargets the test benchmark online (``accuracy.py``'s sequences; --quick:
 its subset): SKR runs once per sequence (the shipped SKR, shared by all variants) and each

@@ -17,8 +17,11 @@ lines. An interrupted ``retarget`` keeps its complete frames and a checkpoint:
 files unless ``--overwrite``; the demo replaces its own.
 """
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -61,6 +64,29 @@ def set_target(retargeter, points, faces, name, space=CANONICAL):
     check_body(points, name, space, tpose=True)
 
 
+@contextlib.contextmanager
+def _stop_between_frames():
+    """Within: Ctrl-C (SIGINT) ends the run after the frame in progress, not inside it, so
+    that no library on the write path can swallow the KeyboardInterrupt (trimesh catches
+    BaseException in places, and a run once went on to the end). Yields a list that is
+    non-empty once a stop is asked; a second Ctrl-C interrupts at once."""
+    asked = []
+    if threading.current_thread() is not threading.main_thread():   # signals: main only
+        yield asked
+        return
+
+    def ask(signum, frame):
+        if asked:
+            raise KeyboardInterrupt
+        asked.append(signum)
+
+    previous = signal.signal(signal.SIGINT, ask)
+    try:
+        yield asked
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, resume=False,
                       overwrite=False, progress=True):
     """Retarget every frame of a source onto the retargeter's target; write ``formats``.
@@ -101,7 +127,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     try:
         save_checkpoint(out_dir, run, state, start, track)
         with open_writers(out_dir, formats, retargeter.target, source.count, source.fps, space,
-                          track, past) as write:
+                          track, past) as write, _stop_between_frames() as stop_asked:
             frames = tqdm(source.frames, total=source.count, initial=start, unit="frame",
                           desc="retargeting", disable=not progress, file=sys.stderr)
             for index, data in enumerate(frames, start):
@@ -113,6 +139,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                     check_body(data, source.frame_name(0), space)
                 write(frame)
                 done, state = index + 1, retargeter.state
+                if stop_asked:
+                    raise KeyboardInterrupt
                 if done % CHECKPOINT_EVERY == 0:
                     save_checkpoint(out_dir, run, state, done, track)
     except BaseException:
