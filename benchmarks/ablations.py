@@ -63,10 +63,12 @@ def train_variant(variant, args):
     subprocess.run(command, check=True)
 
 
-def variant_metrics(weights, sequence, skr_joints):
-    """{input: metrics} for one variant's SMRM on one sequence."""
+def variant_metrics(weights, sequence, skr_joints, rig):
+    """{input: metrics} for one variant's SMRM on one sequence; ``rig``: the shipped SKR and
+    SKIN's ``Target`` (every variant carries them unchanged, so they run once)."""
     retargeter = Retargeter(weights, warn=False)
-    retargeter.set_target(sequence["target_tpose_points"])
+    retargeter.set_target(rig.points, tpose_joints=rig.tpose_joints,
+                          skin_weights=rig.skin_weights)
     truth = sequence["target_joints"], sequence["target_points"]
     out = {}
     # SKR's joints smoothed as the Retargeter does by default; the true joints as they are.
@@ -117,7 +119,8 @@ def main(argv=None):
         skr_joints = np.stack([f.source_joints for f in shipped.run(sequence["source_points"])])
         length = len(skr_joints)
         for variant, weights in variants.items():
-            for name, metrics in variant_metrics(weights, sequence, skr_joints).items():
+            for name, metrics in variant_metrics(weights, sequence, skr_joints,
+                                                        shipped.target).items():
                 row = totals.setdefault(name, {}).setdefault(variant, dict.fromkeys(
                     METRIC_NAMES, 0.0))
                 for key in METRIC_NAMES:

@@ -92,7 +92,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     """Retarget every frame of a source onto the retargeter's target; write ``formats``.
 
     Args:
-        retargeter: Retargeter with weights and a target (``set_target``).
+        retargeter: Retargeter with weights and a target (``set_target``); for a skeleton
+            source its ``smoothing`` is switched off (clean joints: smoothing would only lag).
         open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.

@@ -3,14 +3,15 @@
     python -m training.skr_noise [--weights FILE] [--cmu DIR] [--sequences N] [--frames T]
 
 SMRM is trained on ground-truth skeletons plus noise (``SMRMStage.input_noise``, or
-``input_noise_bias``, ``input_noise_frame`` and ``input_noise_autocorrelation``). At run time its input is SKR's estimate, whose error has two parts
-that a recurrent network must treat differently: a part that stays nearly constant along a
-clip (the body's shape misjudged, a bone too long) and a part that changes every frame
-(jitter from the fresh point sample). This plays validation trials (held-out subjects) on
-validation bodies, samples clouds as the test benchmark does, runs the runtime's SKR and
-splits the residual r_t (T, J, 3) of each sequence into its mean over the sequence (the
-bias) and the rest. It prints the standard deviation of each (metres, per coordinate),
-overall and per joint, and the lag-1 autocorrelation of the rest (0: white jitter).
+``input_noise_bias``, ``input_noise_frame`` and ``input_noise_autocorrelation``). At run time
+its input is SKR's estimate, whose error has two parts that a recurrent network must treat
+differently: a part that stays nearly constant along a clip (the body's shape misjudged, a
+bone too long) and a part that changes every frame (jitter from the fresh point sample). This
+plays validation trials (held-out subjects) on validation bodies, samples clouds as the test
+benchmark does, runs the runtime's SKR and splits the residual r_t (T, J, 3) of each sequence
+into its mean over the sequence (the bias) and the rest. It prints the standard deviation of
+each (metres, per coordinate), overall and per joint, and the lag-1 autocorrelation of the
+rest (0: white jitter).
 Never the test split.
 """
 import argparse
