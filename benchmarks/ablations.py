@@ -65,8 +65,9 @@ def train_variant(variant, args):
 
 def variant_metrics(weights, sequence, skr_joints, rig):
     """{input: metrics} for one variant's SMRM on one sequence; ``rig``: the shipped SKR and
-    SKIN's ``Target`` (every variant carries them unchanged, so they run once)."""
-    retargeter = Retargeter(weights, warn=False)
+    SKIN's ``Target`` (every variant carries them unchanged, so they run once). No foot lock:
+    the variants differ in SMRM, and the lock would blur what SMRM did to the legs."""
+    retargeter = Retargeter(weights, warn=False, foot_lock=None)
     retargeter.set_target(rig.points, tpose_joints=rig.tpose_joints,
                           skin_weights=rig.skin_weights)
     truth = sequence["target_joints"], sequence["target_points"]

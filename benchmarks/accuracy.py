@@ -7,18 +7,23 @@ Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed uns
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     model                the weights given (default: the shipped weights), as ``Retargeter``
                          runs them by default: SKR's joints smoothed over time
-                         (minretarget.smoothing) before SMRM
-    model, no smoothing  the same with SKR's joints as they come (the paper's pipeline)
+                         (minretarget.smoothing) before SMRM, feet held on their contacts
+                         after it (minretarget.contacts)
+    model, no foot lock  the same without the foot contacts
+    model, paper pipeline  neither: SKR's joints as they come, SMRM's rotations as they come
     analytic             the model's (smoothed) source bones, each target bone rotated onto its
                          source bone (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
-    oracle source        ground-truth source joints instead of SKR (not smoothed)
+    oracle source        ground-truth source joints instead of SKR (not smoothed; foot lock on)
     oracle target        ground-truth target T-pose joints and skinning weights instead of
-                         SKR + SKIN (SKR's joints smoothed, as the model's)
-    oracle both          both of the above (not smoothed)
+                         SKR + SKIN (otherwise as the model)
+    oracle both          both of the above (not smoothed; foot lock on)
     paper                the paper's Table 4, reported on its own SMPL test set (not this one)
-Every row but ``paper`` is averaged over frames. If DIR/test is absent, the benchmark data is
-built first (python -m training.data build). --quick: a fixed subset (the first 150 frames of
-the first two sequences of each category), well under 3 minutes.
+Every row but ``paper`` is averaged over frames. A second table gives foot sliding: the mean
+horizontal speed of the toes over the steps where the ground truth's toes touch the ground
+(``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
+If DIR/test is absent, the benchmark data is built first (python -m training.data build).
+--quick: a fixed subset (the first 150 frames of the first two sequences of each category),
+well under 3 minutes.
 """
 import argparse
 import json
@@ -30,16 +35,18 @@ from pathlib import Path
 import numpy as np
 
 from minretarget.analytic import analytic_rotations
+from minretarget.conventions import FPS, JOINT_INDEX
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
-from minretarget.metrics import METRIC_NAMES, evaluate
+from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import load_weights
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
-ROWS = ("model", "model, no smoothing", "analytic", "oracle source", "oracle target",
-        "oracle both")
+ROWS = ("model", "model, no foot lock", "model, paper pipeline", "analytic", "oracle source",
+        "oracle target", "oracle both")
+CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 
 
@@ -66,20 +73,25 @@ def stream(retargeter, source_joints):
 
 def run_sequence(weights, sequence):
     """Every row's (joints, vertices) for one test sequence, and the seconds the online
-    model without smoothing took (SKR + SMRM + FK + LBS; the smoothing adds microseconds)."""
+    model in the paper's pipeline took (SKR + SMRM + FK + LBS; smoothing and foot lock add
+    well under a millisecond a frame)."""
     points = sequence["target_tpose_points"]
-    learned, raw = Retargeter(weights), Retargeter(weights, smoothing=None)
+    learned = Retargeter(weights)
     learned.set_target(points)
-    raw.set_target(points, tpose_joints=learned.target.tpose_joints,
-                   skin_weights=learned.target.skin_weights)
+    rig = {"tpose_joints": learned.target.tpose_joints,
+           "skin_weights": learned.target.skin_weights}
+    true_rig = {"tpose_joints": sequence["target_tpose_joints"],
+                "skin_weights": sequence["target_weights"]}
+    paper, no_lock, raw = (Retargeter(weights, smoothing=None, foot_lock=None),
+                           Retargeter(weights, foot_lock=None), Retargeter(weights, smoothing=None))
     oracle_rig, oracle_rig_raw = Retargeter(weights), Retargeter(weights, smoothing=None)
-    for retargeter in (oracle_rig, oracle_rig_raw):
-        retargeter.set_target(points, tpose_joints=sequence["target_tpose_joints"],
-                              skin_weights=sequence["target_weights"])
+    for retargeter, this_rig in ((paper, rig), (no_lock, rig), (raw, rig),
+                                 (oracle_rig, true_rig), (oracle_rig_raw, true_rig)):
+        retargeter.set_target(points, **this_rig)
     start = time.perf_counter()
-    frames = list(raw.run(sequence["source_points"]))
+    frames = list(paper.run(sequence["source_points"]))
     seconds = time.perf_counter() - start
-    unsmoothed = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
+    paper_pipeline = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
     raw_joints = np.stack([f.source_joints for f in frames])
     # The default model: the same SKR joints, smoothed by step_skeleton as step would.
     learned.reset()
@@ -94,11 +106,37 @@ def run_sequence(weights, sequence):
     root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
     analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)
-    rows = {"model": model, "model, no smoothing": unsmoothed, "analytic": analytic,
+    rows = {"model": model, "model, no foot lock": stream(no_lock, raw_joints),
+            "model, paper pipeline": paper_pipeline, "analytic": analytic,
             "oracle source": stream(raw, sequence["source_joints"]),
             "oracle target": stream(oracle_rig, raw_joints),
             "oracle both": stream(oracle_rig_raw, sequence["source_joints"])}
     return rows, seconds
+
+
+def feet_on_contacts(rows, sequence):
+    """Per row and for the ground truth: [sum of toe speeds (m/s), count] over the steps where
+    the ground truth's toes touch the ground."""
+    truth = sequence["target_joints"]
+    contacts = foot_contacts(truth, CONTACT_HEIGHT)                         # (T - 1, 2)
+    everyone = [(name, joints) for name, (joints, _) in rows.items()] + [("ground truth", truth)]
+    return {name: [float(toe_speeds(joints)[contacts].sum()), int(contacts.sum())]
+            for name, joints in everyone}
+
+
+def toe_speeds(joints):
+    """(T, J, 3) joints -> (T - 1, 2) horizontal speeds of the left and right toes, m/s."""
+    toes = np.asarray(joints, np.float64)[:, [JOINT_INDEX["left_foot"],
+                                              JOINT_INDEX["right_foot"]]][..., [0, 2]]
+    return np.linalg.norm(np.diff(toes, axis=0), axis=-1) * FPS
+
+
+def pooled_feet(results, keys=None):
+    """Toe speed on the ground truth's contacts, pooled over the chosen sequences, per row."""
+    chosen = [r for r in results if keys is None or keys(r)]
+    names = results[0]["feet"].keys()
+    return {name: sum(r["feet"][name][0] for r in chosen)
+            / max(1, sum(r["feet"][name][1] for r in chosen)) for name in names}
 
 
 def sequence_metrics(rows, sequence):
@@ -122,6 +160,16 @@ def markdown_table(rows, title):
     for name, metrics in rows.items():
         lines.append(f"| {name} | " + " | ".join(f"{metrics[m]:.4f}" for m in METRIC_NAMES)
                      + " |")
+    return "\n".join(lines)
+
+
+def feet_table(feet):
+    """Markdown: rows (and the ground truth) by column (all, then categories), m/s."""
+    columns = list(feet)
+    lines = ["**Toe speed on the ground truth's contacts (m/s; foot sliding)**", "",
+             "| row | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+    for name in feet["all"]:
+        lines.append(f"| {name} | " + " | ".join(f"{feet[c][name]:.3f}" for c in columns) + " |")
     return "\n".join(lines)
 
 
@@ -162,7 +210,8 @@ def main(argv=None):
         results.append({"sequence": str(sequence["name"]), "category": str(sequence["category"]),
                         "target_body": str(sequence["target_body"]),
                         "frames": len(sequence["source_points"]),
-                        "metrics": sequence_metrics(rows, sequence)})
+                        "metrics": sequence_metrics(rows, sequence),
+                        "feet": feet_on_contacts(rows, sequence)})
         print(f"[{index + 1}/{len(paths)}] {results[-1]['sequence']} "
               f"({results[-1]['frames']} frames): model MPJPE "
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
@@ -178,6 +227,10 @@ def main(argv=None):
                                         f"{total_frames} frames; paper: its own test set)")]
     sections += [markdown_table(rows, f"Target body {body}") for body, rows in by_body.items()]
     sections += [markdown_table(rows, f"Category {c}") for c, rows in by_category.items()]
+    categories = sorted({r["category"] for r in results})
+    feet = {"all": pooled_feet(results), **{c: pooled_feet(results, lambda r, c=c: r["category"]
+                                                           == c) for c in categories}}
+    sections.append(feet_table(feet))
     text = "\n\n".join(sections)
     print(text)
     print(f"\n{total_frames} frames in {seconds:.0f} s; model (SKR + SMRM + FK + LBS, online) "
@@ -188,6 +241,7 @@ def main(argv=None):
         Path(args.json).write_text(json.dumps(
             {"rows": overall, "frames": total_frames, "sequences": len(results),
              "by_target_body": by_body, "by_category": by_category,
+             "feet_on_truth_contacts": feet,
              "per_sequence": results, "weights": args.weights or "shipped default",
              "weights_metadata": weights.metadata, "quick": args.quick,
              "seconds": round(seconds, 1)}, indent=2))

@@ -30,7 +30,7 @@ def main():
     model = random_reference(ModelConfig(), seed=0)
     # Synthetic Gaussian clouds, not bodies: the unit and T-pose warnings do not apply.
     retargeter = Retargeter(runtime_weights(model.skr, model.smrm, model.skin), warn=False,
-                            smoothing=None)
+                            smoothing=None, foot_lock=None, mirror_target=False)
     target, sources = random_stream(seed=0, frames=args.frames, target_points=args.target,
                                     min_points=args.points, max_points=args.points + 1)
     retargeter.set_target(target)

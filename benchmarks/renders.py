@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import load_sequence, sequence_metrics  # noqa: E402
+from accuracy import CONTACT_HEIGHT, load_sequence, sequence_metrics, toe_speeds  # noqa: E402
 
 from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, PARENTS, UP_AXIS  # noqa: E402
 from minretarget.metrics import foot_contacts, foot_sliding, jitter  # noqa: E402
@@ -51,7 +51,6 @@ from minretarget.weights import load_weights  # noqa: E402
 
 SEQUENCES = (("08_01", "walk"), ("08_02", "walk"), ("indian_06", "dance"),
              ("indian_04", "dance"))
-CONTACT_HEIGHT = 0.03          # metres, foot contact threshold
 KNEE_BACKWARD_DEG = (10.0, 150.0)  # degrees bent the wrong way that count as backward
 
 
@@ -82,9 +81,7 @@ def knee_bend(joints):
 
 def feet_speed_on(joints, contact):
     """(T, J, 3), (T - 1, 2) bool -> mean horizontal speed (m/s) of the feet over ``contact``."""
-    feet = joints[:, [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]][..., [0, 2]]
-    speed = np.linalg.norm(np.diff(feet, axis=0), axis=-1) * FPS
-    return float(speed[contact].mean()) if contact.any() else float("nan")
+    return float(toe_speeds(joints)[contact].mean()) if contact.any() else float("nan")
 
 
 def motion_numbers(joints, points):

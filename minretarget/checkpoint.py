@@ -5,7 +5,8 @@ Files in the output folder while a run goes on (removed when it completes):
                       and at Ctrl-C: ``frames_done``; the SMRM state after those frames
                       (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
                       ``previous_joints``, ``joint_velocity``, ``source_leg_length`` float64,
-                      ``frames_seen``); ``run``,
+                      ``frames_seen``, the foot contacts' ``toe_filtered``, ``toe_anchor``,
+                      ``foot_offset``, ``feet_planted``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
                       Plain arrays: it loads without pickle.
     checkpoint.track  the small per-frame arrays, one float32 record a frame, appended as
@@ -36,7 +37,8 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 2          # 2: the state holds the smoothed joints, their speed, the longest leg
+VERSION = 3          # 2: the state holds the smoothed joints, their speed, the longest leg;
+#                      3: and the foot contacts
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -117,18 +119,21 @@ def _digest(arrays):
     return digest.hexdigest()
 
 
-def run_record(source, target, weights, formats, space, points, seed, smoothing=None):
+def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
+               foot_lock=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
-    (SHA-256 of their arrays), the formats, units, up axis, the resampling and the
-    smoothing (``smoothing.Smoothing`` or None)."""
+    (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
+    (``smoothing.Smoothing`` or None) and the foot contacts (``contacts.FootLock`` or
+    None)."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
             "points": points, "seed": seed,
-            "smoothing": None if smoothing is None else list(smoothing)}
+            "smoothing": None if smoothing is None else list(smoothing),
+            "foot_lock": None if foot_lock is None else list(foot_lock)}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):

@@ -27,6 +27,7 @@ import warnings
 from pathlib import Path
 
 from . import __version__
+from .contacts import FootLock
 from .checkpoint import (CHECKPOINT_EVERY, TRACK, Track, prepare_out_dir, remove_checkpoint,
                          run_record, save_checkpoint)
 from .extras import MissingExtra, require
@@ -42,7 +43,7 @@ from .weights import DEFAULT_WEIGHTS
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
-def load_retargeter(weights=None, smoothing=Smoothing()):
+def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock()):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -51,7 +52,8 @@ def load_retargeter(weights=None, smoothing=Smoothing()):
             "with minretarget once the model is trained. Pass --weights FILE to use a weights "
             "file of your own (python -m training.train ... exports one).")
     # warn=False: the command line checks the inputs itself, naming files and options.
-    return Retargeter.from_weights(weights, warn=False, smoothing=smoothing)
+    return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
+                                   foot_lock=foot_lock)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -112,7 +114,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     if source.kind != "points":
         retargeter.smoothing = None     # a skeleton source is clean: smoothing would only lag
     run = run_record(source, retargeter.target, retargeter.weights, formats, space,
-                     smoothing=retargeter.smoothing, **settings)
+                     smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
+                     **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
         source = open_at(start)
@@ -166,7 +169,8 @@ def _retarget(args):
     start = time.perf_counter()
     space = make_space(args.units, args.up_axis)
     formats = parse_formats(args.format)
-    retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing())
+    retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
+                                 None if args.no_foot_lock else FootLock())
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -262,6 +266,9 @@ def build_parser():
                           help="feed SMRM the source skeleton of each point cloud as SKR finds "
                                "it (default: smoothed over time against jitter; skeleton "
                                "sources are never smoothed)")
+    retarget.add_argument("--no-foot-lock", action="store_true",
+                          help="keep SMRM's leg rotations as they come (default: a foot that "
+                               "stops on the ground is held there, the leg bent to reach it)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

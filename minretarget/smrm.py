@@ -48,6 +48,11 @@ class MotionState(NamedTuple):
     joint_velocity: np.ndarray   # (J, 3) float32 their speed estimate (smoothing), m/s
     source_leg_length: float     # the longest source leg length seen, metres
     frames_seen: int
+    # Foot contacts (``minretarget.contacts``), per leg (left, right):
+    toe_filtered: np.ndarray     # (2, 3) float32 the target's low-passed toe positions, metres
+    toe_anchor: np.ndarray       # (2, 3) float32 where each planted toe stays, metres
+    foot_offset: np.ndarray      # (2, 3) float32 the move the feet get from the lock, metres
+    feet_planted: np.ndarray     # (2,) bool
 
 
 def initial_state(weights, first_joints):
@@ -55,12 +60,15 @@ def initial_state(weights, first_joints):
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     zeros = np.zeros((layers, hidden), dtype=np.float32)
     first_joints = np.array(first_joints, dtype=np.float32)
-    return MotionState(zeros, zeros.copy(), first_joints, np.zeros_like(first_joints), 0.0, 0)
+    feet = np.zeros((2, 3), dtype=np.float32)
+    return MotionState(zeros, zeros.copy(), first_joints, np.zeros_like(first_joints), 0.0, 0,
+                       feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool))
 
 
 def check_state(weights, state):
     """A MotionState checked against ``weights`` (e.g. one read back from a file): hidden
-    states (layers, H), finite (J, 3) joints and velocities, a count and a finite length >= 0.
+    states (layers, H), finite (J, 3) joints and velocities, a count and a finite length >= 0,
+    finite (2, 3) foot-contact arrays and (2,) bool planted flags.
     Returns it with C-contiguous float32 arrays; ValueError names the field."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     if not isinstance(state, MotionState):
@@ -77,7 +85,13 @@ def check_state(weights, state):
     if frames < 0 or frames != state.frames_seen or not 0 <= leg < np.inf:
         raise ValueError(f"state: frames_seen {state.frames_seen!r} and source_leg_length "
                          f"{state.source_leg_length!r} must be a count and a finite length >= 0")
-    return MotionState(encoder, decoder, previous, velocity, leg, frames)
+    feet = [as_float32_array(getattr(state, name), f"state.{name}", (2, 3))
+            for name in ("toe_filtered", "toe_anchor", "foot_offset")]
+    planted = np.asarray(state.feet_planted)
+    if planted.shape != (2,) or planted.dtype != bool:
+        raise ValueError(f"state.feet_planted must be a (2,) bool array, got "
+                         f"{planted.dtype} {planted.shape}")
+    return MotionState(encoder, decoder, previous, velocity, leg, frames, *feet, planted.copy())
 
 
 def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
@@ -106,8 +120,9 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
     rotations, root, leg = _retarget_step_kernel(
         weights, seen, target_tpose, encoder_hidden, decoder_hidden,
         state.previous_joints[0], float(state.source_leg_length))
-    new_state = MotionState(encoder_hidden, decoder_hidden, seen, velocity, leg,
-                            state.frames_seen + 1)
+    new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
+                               previous_joints=seen, joint_velocity=velocity,
+                               source_leg_length=leg, frames_seen=state.frames_seen + 1)
     return rotations, root, new_state
 
 

@@ -25,7 +25,8 @@ def tiny_model():
 
 def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp_path):
     export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin)
-    retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None)   # as torch
+    retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None,      # as torch
+                                         foot_lock=None, mirror_target=False)
     target, sources = random_stream(seed=1, frames=60)
     want = reference_outputs(tiny_model, target, sources)
     retargeter.set_target(target)
@@ -114,7 +115,7 @@ def test_paper_size_stages_match_torch(tmp_path):
     np.testing.assert_allclose(joints, want_joints, atol=TOLERANCE)
     np.testing.assert_allclose(skinning_weights(points, joints, weights.skin), want_weights,
                                atol=1e-5)
-    retargeter = Retargeter(weights, smoothing=None)
+    retargeter = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False)
     retargeter.set_target(points)
     for t in range(10):
         frame = retargeter.step_skeleton(source[0, t].numpy())

@@ -122,3 +122,29 @@ def test_a_given_rig_replaces_skr_and_skin(tiny_weights, tiny_stream):
         retargeter.set_target(target, skin_weights=weights * 2)
     with pytest.raises(ValueError, match="skin_weights must have shape"):
         retargeter.set_target(target, skin_weights=weights[:10])
+
+
+def test_target_skeleton_is_averaged_with_its_mirror_image(tiny_weights, tiny_stream):
+    """regress_tpose_joints = the mean of SKR on the cloud and SKR on its mirror image mapped
+    back (by hand); on a mirror-symmetric cloud the result is itself mirror-symmetric; the
+    Retargeter uses it unless mirror_target=False."""
+    from minretarget.conventions import JOINT_NAMES, MIRROR
+    from minretarget.skr import regress_joints, regress_tpose_joints
+    assert all(JOINT_NAMES[MIRROR[j]] == name.replace("left", "right") if "left" in name else
+               JOINT_NAMES[MIRROR[j]] == name.replace("right", "left") if "right" in name else
+               MIRROR[j] == j for j, name in enumerate(JOINT_NAMES))
+    target = tiny_stream[0]
+    flip = np.array([-1, 1, 1], np.float32)
+    plain = regress_joints(target, tiny_weights.skr)
+    mirrored = regress_joints(target * flip, tiny_weights.skr)
+    swapped = np.array([mirrored[MIRROR[j]] for j in range(len(MIRROR))]) * flip
+    np.testing.assert_allclose(regress_tpose_joints(target, tiny_weights.skr),
+                               (plain + swapped) / 2, atol=1e-6)
+    symmetric = np.concatenate([target, target * flip])
+    joints = regress_tpose_joints(symmetric, tiny_weights.skr)
+    np.testing.assert_allclose(joints[list(MIRROR)] * flip, joints, atol=1e-5)
+    for mirror_target, want in ((True, regress_tpose_joints(target, tiny_weights.skr)),
+                                (False, plain)):
+        retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target)
+        retargeter.set_target(target)
+        np.testing.assert_allclose(retargeter.target.tpose_joints, want, atol=1e-6)

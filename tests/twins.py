@@ -101,3 +101,81 @@ def one_euro(frames, min_cutoff, beta, derivative_cutoff, fps=30.0):
         speed = np.linalg.norm(velocity, axis=-1, keepdims=True)                # (J, 1)
         out[t] = out[t - 1] + factor(min_cutoff + beta * speed) * (frames[t] - out[t - 1])
     return out
+
+
+def _turn(axis, angle):
+    """3 x 3 rotation by ``angle`` about ``axis`` (Rodrigues' formula)."""
+    x, y, z = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    cross = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+def _matrix_to_quaternion(m):
+    """3 x 3 rotation -> (w, x, y, z) via the largest-diagonal branch (w >= 0 not forced)."""
+    trace = np.trace(m)
+    if trace > 0:
+        s = 2 * np.sqrt(1 + trace)
+        q = [s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2 * np.sqrt(1 + m[i, i] - m[j, j] - m[k, k])
+        q = np.empty(4)
+        q[0] = (m[k, j] - m[j, k]) / s
+        q[1 + i], q[1 + j], q[1 + k] = s / 4, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
+    return np.asarray(q)
+
+
+def plant_feet(rotations, root, tpose, lock, fps=30.0):
+    """(T, J, 4), (T, 3), (J, 3), FootLock -> new rotations (T, J, 4) and planted (T, 2):
+    minretarget.contacts over a whole sequence, with rotation matrices instead of
+    quaternions (two-bone IK: bend the knee by the law of cosines, swing the leg at the hip,
+    keep the ankle's world orientation)."""
+    legs = ((1, 4, 7, 10), (2, 5, 8, 11))
+    a = 1.0 - 1.0 / (1.0 + 2.0 * np.pi * lock.speed_cutoff / fps)
+    out = np.array(rotations, np.float64)
+    planted_all = np.zeros((len(out), 2), bool)
+    planted, anchor, offset, filtered = [False, False], np.zeros((2, 3)), np.zeros((2, 3)), None
+    for t in range(len(out)):
+        joints, world = forward_kinematics(rotations[t], root[t], tpose)
+        toes = joints[[10, 11]]
+        previous = toes if filtered is None else filtered
+        filtered = toes if filtered is None else filtered + a * (toes - filtered)
+        speed = np.linalg.norm(filtered - previous, axis=1) * fps
+        left = joints[1] - joints[2]
+        for side, (hip, knee, ankle, toe) in enumerate(legs):
+            low = toes[side, 1] <= toes[1 - side, 1] + lock.height_margin
+            if planted[side]:
+                planted[side] = (low and speed[side] <= lock.lift_speed
+                                 and np.linalg.norm(anchor[side] - toes[side])
+                                 <= lock.release_distance)
+            elif t > 0 and low and speed[side] < lock.plant_speed:
+                planted[side], anchor[side] = True, filtered[side]
+            if planted[side]:
+                anchor[side] = anchor[side] + lock.anchor_follow * (filtered[side] - anchor[side])
+            offset[side] = (anchor[side] - toes[side] if planted[side]
+                            else lock.release_decay * offset[side])
+            planted_all[t, side] = planted[side]
+            if np.linalg.norm(offset[side]) <= 1e-5:
+                continue
+            goal = joints[ankle] + offset[side]
+            thigh, shank = joints[knee] - joints[hip], joints[ankle] - joints[knee]
+            l1, l2 = np.linalg.norm(thigh), np.linalg.norm(shank)
+            reach = np.clip(np.linalg.norm(goal - joints[hip]), abs(l1 - l2) + 1e-4,
+                            l1 + l2 - 1e-4)
+            normal = np.cross(thigh, shank)
+            bend = np.arctan2(np.linalg.norm(normal), thigh @ shank)
+            if np.linalg.norm(normal) < 1e-6 * l1 * l2:
+                normal = left
+            knee_turn = _turn(normal, np.pi - np.arccos(np.clip(
+                (l1 * l1 + l2 * l2 - reach * reach) / (2 * l1 * l2), -1, 1)) - bend)
+            bent = joints[knee] + knee_turn @ shank - joints[hip]
+            wanted = goal - joints[hip]
+            axis = np.cross(bent, wanted)
+            hip_turn = (np.eye(3) if np.linalg.norm(axis) < 1e-9 else _turn(
+                axis, np.arctan2(np.linalg.norm(axis), bent @ wanted)))
+            new_hip, new_knee = hip_turn @ world[hip], hip_turn @ knee_turn @ world[knee]
+            for joint, local in ((hip, world[0].T @ new_hip), (knee, new_hip.T @ new_knee),
+                                 (ankle, new_knee.T @ world[ankle])):
+                out[t, joint] = _matrix_to_quaternion(local)
+    return out, planted_all

@@ -1,0 +1,130 @@
+"""Choose the foot contacts' settings (minretarget.contacts.FootLock) on validation motion.
+
+    python -m training.tune_contacts [--weights FILE] [--cmu DIR] [--cache DIR]
+
+Validation only, never the test split: trials of the held-out training subjects (06
+basketball, 09 running and walking), at most 240 frames each, played on held-out validation
+bodies (source and target differ), sampled into clouds as the test benchmark does. The
+shipped runtime (smoothing on, foot lock off) retargets each once; its rotations are cached in
+``--cache``, then every setting of a grid runs ``contacts.plant_feet`` over them.
+For each setting it prints the toe speed over the ground truth's contacts (pooled over those
+steps, m/s; ``benchmarks/accuracy.py``'s foot-sliding table), MPJPE, PA-MPJPE and Acc of
+the joints (metres). The choice: the least PA-MPJPE among the settings whose toes move no
+faster on the truth's contacts than the truth's own do.
+"""
+import argparse
+import dataclasses
+import itertools
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from minretarget.conventions import FPS, JOINT_INDEX
+from minretarget.contacts import FootLock, plant_feet
+from minretarget.kinematics import forward_kinematics
+from minretarget.metrics import acceleration_error, foot_contacts, mpjpe, pa_mpjpe
+from minretarget.retargeter import Retargeter
+from minretarget.smrm import initial_state
+from minretarget.weights import load_weights
+from training.data.bodies import body_from_seed, sampled_body_seeds
+from training.data.cmu import cmu_tpose_joints, list_trials, load_motion
+from training.data.datasets import VALIDATION_SUBJECTS, benchmark_sequence
+
+TRIALS, MAX_FRAMES, CONTACT_HEIGHT = 12, 240, 0.03
+GRID = {"plant_speed": (0.5, 1.0, 2.0), "lift_speed": (2.0, 3.0), "speed_cutoff": (6.0, 12.0),
+        "height_margin": (0.05,), "release_distance": (0.07, 0.1, 0.15),
+        "release_decay": (0.5,), "anchor_follow": (0.05, 0.1, 0.15, 0.2)}
+
+
+def validation_streams(weights, cmu_dir, cache_dir):
+    """[(name, SMRM rotations (T, J, 4), root (T, 3), target T-pose (J, 3), truth joints
+    (T, J, 3))]: built and retargeted once, then read from ``cache_dir``."""
+    cache_dir = Path(cache_dir)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    trials = [t for t in list_trials(cmu_dir) if t.subject in VALIDATION_SUBJECTS]
+    actor_hip_height = float(cmu_tpose_joints(trials[0].path)[0, 1])
+    bodies = [body_from_seed(seed) for seed in sampled_body_seeds(15, "val")]
+    rng = np.random.default_rng(0)
+    streams = []
+    for k, index in enumerate(rng.permutation(len(trials))[:TRIALS]):
+        trial = trials[index]
+        path = cache_dir / f"{trial.name}.npz"
+        if not path.is_file():
+            motion = load_motion(trial.path, fps=FPS)
+            motion = dataclasses.replace(motion, rotations=motion.rotations[:MAX_FRAMES],
+                                         root=motion.root[:MAX_FRAMES])
+            sequence = benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
+                                          2048, actor_hip_height, rng)
+            retargeter = Retargeter(weights, warn=False, foot_lock=None)
+            retargeter.set_target(sequence["target_tpose_points"])
+            frames = retargeter.retarget_sequence(sequence["source_points"])
+            np.savez(path, rotations=frames.rotations, root=frames.root,
+                     tpose=retargeter.target.tpose_joints, truth=sequence["target_joints"])
+            print(f"{trial.name} ({trial.category}): {len(frames.root)} frames", flush=True)
+        with np.load(path) as data:
+            streams.append((trial.name, data["rotations"], data["root"], data["tpose"],
+                            data["truth"]))
+    return streams
+
+
+def toe_speeds(joints):
+    """(T, J, 3) -> (T - 1, 2) horizontal toe speeds, m/s."""
+    toes = joints[:, [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]][..., [0, 2]]
+    return np.linalg.norm(np.diff(toes.astype(np.float64), axis=0), axis=-1) * FPS
+
+
+def score(weights, streams, foot_lock):
+    """Pooled toe speed on the truth's contacts, the truth's own, then frame-weighted MPJPE,
+    PA-MPJPE and Acc of the joints with ``foot_lock`` (None: SMRM's alone)."""
+    speed = truth_speed = steps = 0.0
+    errors, frames = np.zeros(3), 0
+    for _, rotations, root, tpose, truth in streams:
+        state = initial_state(weights.smrm, tpose)      # only its foot fields are used
+        out = np.empty_like(rotations)
+        for t in range(len(rotations)):
+            state = state._replace(frames_seen=t + 1)
+            out[t], state = plant_feet(rotations[t], root[t], tpose, state, foot_lock)
+        joints = forward_kinematics(out, root, tpose)[0]
+        contacts = foot_contacts(truth, CONTACT_HEIGHT)
+        speed += toe_speeds(joints)[contacts].sum()
+        truth_speed += toe_speeds(truth)[contacts].sum()
+        steps += contacts.sum()
+        errors += len(joints) * np.array([mpjpe(joints, truth), pa_mpjpe(joints, truth),
+                                          acceleration_error(joints, truth)])
+        frames += len(joints)
+    return speed / steps, truth_speed / steps, *(errors / frames)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--weights", help="weights file (default: the shipped weights)")
+    parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data directory")
+    parser.add_argument("--cache", default="runs/tune_contacts", help="validation cache")
+    args = parser.parse_args(argv)
+    weights = load_weights(args.weights)
+    streams = validation_streams(weights, args.cmu, args.cache)
+    none = score(weights, streams, None)
+    print(f"{'setting':<60} toe speed (truth)  MPJPE  PA-MPJPE  Acc")
+    print(f"{'no foot lock':<60} {none[0]:.3f} ({none[1]:.3f})  {none[2]:.4f}  {none[3]:.4f}  "
+          f"{none[4]:.4f}", flush=True)
+    results = []
+    for values in itertools.product(*GRID.values()):
+        lock = FootLock(**dict(zip(GRID, values)))
+        if lock.plant_speed > lock.lift_speed:
+            continue
+        result = score(weights, streams, lock)
+        results.append((lock, result))
+        print(f"{str(tuple(lock)):<60} {result[0]:.3f} ({result[1]:.3f})  {result[2]:.4f}  "
+              f"{result[3]:.4f}  {result[4]:.4f}", flush=True)
+    fitting = [(lock, result) for lock, result in results if result[0] <= result[1]]
+    if not fitting:
+        sys.exit("no setting keeps the toes as still as the truth's")
+    lock, result = min(fitting, key=lambda item: item[1][3])
+    print(f"chosen: {lock}\n  toe speed {result[0]:.3f} m/s (truth {result[1]:.3f}, no lock "
+          f"{none[0]:.3f}); MPJPE {none[2]:.4f} -> {result[2]:.4f}, PA-MPJPE {none[3]:.4f} -> "
+          f"{result[3]:.4f}, Acc {none[4]:.4f} -> {result[4]:.4f}")
+
+
+if __name__ == "__main__":
+    main()
