@@ -10,6 +10,8 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
                          (minretarget.smoothing) before SMRM, feet held on their contacts
                          after it (minretarget.contacts)
     model, no foot lock  the same without the foot contacts
+    model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
+                         averaged with those of each cloud's mirror image
     model, paper pipeline  neither: SKR's joints as they come, SMRM's rotations as they come
     analytic             the model's (smoothed) source bones, each target bone rotated onto its
                          source bone (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
@@ -35,17 +37,16 @@ from pathlib import Path
 import numpy as np
 
 from minretarget.analytic import analytic_rotations
-from minretarget.conventions import FPS, JOINT_INDEX
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
-from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts
+from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts, foot_speeds
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import load_weights
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
-ROWS = ("model", "model, no foot lock", "model, paper pipeline", "analytic", "oracle source",
-        "oracle target", "oracle both")
+ROWS = ("model", "model, no foot lock", "model, mirrored source", "model, paper pipeline",
+        "analytic", "oracle source", "oracle target", "oracle both")
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 
@@ -67,7 +68,12 @@ def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
 def stream(retargeter, source_joints):
     """Run SMRM, FK and LBS online over known source joints -> joints, vertices (T, ...)."""
     retargeter.reset()
-    frames = [retargeter.step_skeleton(joints) for joints in source_joints]
+    return stacked([retargeter.step_skeleton(joints) for joints in source_joints])
+
+
+def stacked(frames):
+    """RetargetedFrames (any iterable) -> their joints (T, J, 3) and vertices (T, V, 3)."""
+    frames = list(frames)
     return np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
 
 
@@ -84,19 +90,20 @@ def run_sequence(weights, sequence):
                 "skin_weights": sequence["target_weights"]}
     paper, no_lock, raw = (Retargeter(weights, smoothing=None, foot_lock=None),
                            Retargeter(weights, foot_lock=None), Retargeter(weights, smoothing=None))
+    mirrored = Retargeter(weights, mirror_source=True)
     oracle_rig, oracle_rig_raw = Retargeter(weights), Retargeter(weights, smoothing=None)
-    for retargeter, this_rig in ((paper, rig), (no_lock, rig), (raw, rig),
+    for retargeter, this_rig in ((paper, rig), (no_lock, rig), (raw, rig), (mirrored, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig)):
         retargeter.set_target(points, **this_rig)
     start = time.perf_counter()
     frames = list(paper.run(sequence["source_points"]))
     seconds = time.perf_counter() - start
-    paper_pipeline = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
+    paper_pipeline = stacked(frames)
     raw_joints = np.stack([f.source_joints for f in frames])
     # The default model: the same SKR joints, smoothed by step_skeleton as step would.
     learned.reset()
     frames = [learned.step_skeleton(joints) for joints in raw_joints]
-    model = np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
+    model = stacked(frames)
     skr_joints = np.stack([f.source_joints for f in frames])                  # smoothed
 
     # Analytic: the same source skeletons and target rig, rotations from bone alignment, and
@@ -107,6 +114,7 @@ def run_sequence(weights, sequence):
     analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)
     rows = {"model": model, "model, no foot lock": stream(no_lock, raw_joints),
+            "model, mirrored source": stacked(mirrored.run(sequence["source_points"])),
             "model, paper pipeline": paper_pipeline, "analytic": analytic,
             "oracle source": stream(raw, sequence["source_joints"]),
             "oracle target": stream(oracle_rig, raw_joints),
@@ -120,15 +128,8 @@ def feet_on_contacts(rows, sequence):
     truth = sequence["target_joints"]
     contacts = foot_contacts(truth, CONTACT_HEIGHT)                         # (T - 1, 2)
     everyone = [(name, joints) for name, (joints, _) in rows.items()] + [("ground truth", truth)]
-    return {name: [float(toe_speeds(joints)[contacts].sum()), int(contacts.sum())]
+    return {name: [float(foot_speeds(joints)[contacts].sum()), int(contacts.sum())]
             for name, joints in everyone}
-
-
-def toe_speeds(joints):
-    """(T, J, 3) joints -> (T - 1, 2) horizontal speeds of the left and right toes, m/s."""
-    toes = np.asarray(joints, np.float64)[:, [JOINT_INDEX["left_foot"],
-                                              JOINT_INDEX["right_foot"]]][..., [0, 2]]
-    return np.linalg.norm(np.diff(toes, axis=0), axis=-1) * FPS
 
 
 def pooled_feet(results, keys=None):

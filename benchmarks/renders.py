@@ -41,10 +41,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import CONTACT_HEIGHT, load_sequence, sequence_metrics, toe_speeds  # noqa: E402
+from accuracy import CONTACT_HEIGHT, load_sequence, sequence_metrics  # noqa: E402
 
 from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, PARENTS, UP_AXIS  # noqa: E402
-from minretarget.metrics import foot_contacts, foot_sliding, jitter  # noqa: E402
+from minretarget.metrics import foot_contacts, foot_sliding, foot_speeds, jitter  # noqa: E402
 from minretarget.render import render  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
 from minretarget.weights import load_weights  # noqa: E402
@@ -81,7 +81,7 @@ def knee_bend(joints):
 
 def feet_speed_on(joints, contact):
     """(T, J, 3), (T - 1, 2) bool -> mean horizontal speed (m/s) of the feet over ``contact``."""
-    return float(toe_speeds(joints)[contact].mean()) if contact.any() else float("nan")
+    return float(foot_speeds(joints)[contact].mean()) if contact.any() else float("nan")
 
 
 def motion_numbers(joints, points):

@@ -120,12 +120,12 @@ def _digest(arrays):
 
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
-               foot_lock=None):
+               foot_lock=None, mirror_source=False):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
-    (``smoothing.Smoothing`` or None) and the foot contacts (``contacts.FootLock`` or
-    None)."""
+    (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None) and
+    whether SKR also runs on the source's mirror images."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
@@ -133,7 +133,8 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
             "points": points, "seed": seed,
             "smoothing": None if smoothing is None else list(smoothing),
-            "foot_lock": None if foot_lock is None else list(foot_lock)}
+            "foot_lock": None if foot_lock is None else list(foot_lock),
+            "mirror_source": bool(mirror_source)}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):

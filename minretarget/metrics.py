@@ -339,12 +339,20 @@ def foot_sliding(joints, fps=FPS, contact_height=0.03, feet=FOOT_JOINTS):
     Returns:
         float, m/s: mean speed over the contact steps; nan if there are none.
     """
-    joints = _as_float64(joints, "joints", sequence=True)
     contact = foot_contacts(joints, contact_height, feet)               # (T-1, F)
+    speed = foot_speeds(joints, fps, feet)
+    return float(speed[contact].mean()) if contact.any() else float("nan")
+
+
+def foot_speeds(joints, fps=FPS, feet=FOOT_JOINTS):
+    """(T, J, 3) joints, metres, T >= 2 -> (T - 1, F) horizontal (x, z) speed of each foot
+    over each step t -> t+1, metres per second."""
+    joints = _as_float64(joints, "joints", sequence=True)
+    if joints.shape[0] < 2:
+        raise ValueError(f"joints need at least 2 frames, got shape {joints.shape}")
     horizontal = [axis for axis in range(3) if axis != UP_AXIS]
     feet_xz = joints[:, [JOINT_INDEX[name] for name in feet]][..., horizontal]  # (T, F, 2)
-    speed = np.linalg.norm(np.diff(feet_xz, axis=0), axis=-1) * fps     # (T-1, F)
-    return float(speed[contact].mean()) if contact.any() else float("nan")
+    return np.linalg.norm(np.diff(feet_xz, axis=0), axis=-1) * fps      # (T-1, F)
 
 
 def evaluate(pred_joints, gt_joints, pred_points, gt_points, k=6, rest_points=None):

@@ -13,7 +13,7 @@ from .contacts import FootLock, check_foot_lock, plant_feet
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .skin import linear_blend_skinning, skinning_weights
-from .skr import regress_joints, regress_tpose_joints
+from .skr import regress_joints, regress_joints_mirrored
 from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
 from .validation import as_float32_array, as_point_cloud, check_body
@@ -38,7 +38,7 @@ class RetargetedFrame(NamedTuple):
 
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
-                 foot_lock=FootLock(), mirror_target=True):
+                 foot_lock=FootLock(), mirror_target=True, mirror_source=False):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -50,20 +50,24 @@ class Retargeter:
         stays put; the legs are bent to hold it), or None for SMRM's rotations as they come
         (the paper's pipeline and the torch reference).
         ``mirror_target``: find the target's skeleton with SKR on its T-pose and on the
-        mirror image of it, averaged (``skr.regress_tpose_joints``), or False for SKR once
-        (the paper's pipeline and the torch reference)."""
+        mirror image of it, averaged (``skr.regress_joints_mirrored``), or False for SKR once
+        (the paper's pipeline and the torch reference).
+        ``mirror_source``: the same for every source frame: SKR's time doubles (with
+        ``workers=2`` the cloud and its mirror image run side by side), for about 1 mm of
+        PA-MPJPE on the test benchmark (README, Results)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
         self.smoothing = check_smoothing(smoothing)
         self.foot_lock = check_foot_lock(foot_lock)
         self.mirror_target = bool(mirror_target)
+        self.mirror_source = bool(mirror_source)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
-                     foot_lock=FootLock(), mirror_target=True):
+                     foot_lock=FootLock(), mirror_target=True, mirror_source=False):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target)
 
@@ -89,8 +93,7 @@ class Retargeter:
                 raise ValueError(f"faces index vertices outside [0, {len(points)})")
             faces = faces.astype(np.int64)
         if tpose_joints is None:
-            tpose_joints = (regress_tpose_joints if self.mirror_target else regress_joints)(
-                points, self.weights.skr, self.workers)
+            tpose_joints = self._skr(points, self.mirror_target)
         tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
         if skin_weights is None:
             skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
@@ -125,7 +128,7 @@ class Retargeter:
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
-        return self._step_joints(regress_joints(points, self.weights.skr, self.workers))
+        return self._step_joints(self._skr(points, self.mirror_source))
 
     def step_skeleton(self, source_joints):
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; it is
@@ -143,6 +146,11 @@ class Retargeter:
         # A copy: the state's own array must not change if the caller edits the frame's.
         return RetargetedFrame(vertices, joints, rotations, root,
                                self._state.previous_joints.copy())
+
+    def _skr(self, points, mirrored):
+        """SKR's joints of (P, 3) or (B, P, 3) clouds, averaged with the mirror image's."""
+        regress = regress_joints_mirrored if mirrored else regress_joints
+        return regress(points, self.weights.skr, self.workers)
 
     def _retarget_step(self, source_joints):
         """SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""
@@ -191,7 +199,7 @@ class Retargeter:
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
-        source_joints = regress_joints(frames, self.weights.skr, self.workers)
+        source_joints = self._skr(frames, self.mirror_source)
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):

@@ -8,8 +8,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from minretarget.metrics import (
-    METRIC_NAMES, acceleration_error, evaluate, foot_contacts, foot_sliding, jitter, knn_edges,
-    mean_point_error, medl, mpjpe, mpvd, pa_acceleration_error, pa_mpjpe, pa_mpvd,
+    METRIC_NAMES, acceleration_error, evaluate, foot_contacts, foot_sliding, foot_speeds, jitter,
+    knn_edges, mean_point_error, medl, mpjpe, mpvd, pa_acceleration_error, pa_mpjpe, pa_mpvd,
     procrustes_align)
 
 
@@ -423,4 +423,7 @@ def test_foot_sliding_hand_computed():
     assert math.isnan(foot_sliding(_feet_walk(bobbing, bobbing), contact_height=0.01))
     # fps scales the speed; no contact at all gives nan.
     assert foot_sliding(_feet_walk(dragged, dragged), fps=60) == pytest.approx(2.0)
+    # Per step and foot: horizontal speed only (the bobbing foot's 2 cm a frame up and down
+    # do not count).
+    np.testing.assert_allclose(foot_speeds(_feet_walk(planted, bobbing)), [[0, 1]] * 4)
     assert math.isnan(foot_sliding(_feet_walk(flying, flying), contact_height=-1.0))

@@ -125,11 +125,11 @@ def test_a_given_rig_replaces_skr_and_skin(tiny_weights, tiny_stream):
 
 
 def test_target_skeleton_is_averaged_with_its_mirror_image(tiny_weights, tiny_stream):
-    """regress_tpose_joints = the mean of SKR on the cloud and SKR on its mirror image mapped
+    """regress_joints_mirrored = the mean of SKR on the cloud and SKR on its mirror image mapped
     back (by hand); on a mirror-symmetric cloud the result is itself mirror-symmetric; the
     Retargeter uses it unless mirror_target=False."""
     from minretarget.conventions import JOINT_NAMES, MIRROR
-    from minretarget.skr import regress_joints, regress_tpose_joints
+    from minretarget.skr import regress_joints, regress_joints_mirrored
     assert all(JOINT_NAMES[MIRROR[j]] == name.replace("left", "right") if "left" in name else
                JOINT_NAMES[MIRROR[j]] == name.replace("right", "left") if "right" in name else
                MIRROR[j] == j for j, name in enumerate(JOINT_NAMES))
@@ -138,13 +138,32 @@ def test_target_skeleton_is_averaged_with_its_mirror_image(tiny_weights, tiny_st
     plain = regress_joints(target, tiny_weights.skr)
     mirrored = regress_joints(target * flip, tiny_weights.skr)
     swapped = np.array([mirrored[MIRROR[j]] for j in range(len(MIRROR))]) * flip
-    np.testing.assert_allclose(regress_tpose_joints(target, tiny_weights.skr),
+    np.testing.assert_allclose(regress_joints_mirrored(target, tiny_weights.skr),
                                (plain + swapped) / 2, atol=1e-6)
     symmetric = np.concatenate([target, target * flip])
-    joints = regress_tpose_joints(symmetric, tiny_weights.skr)
+    joints = regress_joints_mirrored(symmetric, tiny_weights.skr)
     np.testing.assert_allclose(joints[list(MIRROR)] * flip, joints, atol=1e-5)
-    for mirror_target, want in ((True, regress_tpose_joints(target, tiny_weights.skr)),
+    for mirror_target, want in ((True, regress_joints_mirrored(target, tiny_weights.skr)),
                                 (False, plain)):
         retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target)
         retargeter.set_target(target)
         np.testing.assert_allclose(retargeter.target.tpose_joints, want, atol=1e-6)
+
+
+def test_mirror_source_feeds_smrm_the_mirror_averaged_skeleton(tiny_weights, tiny_stream):
+    """step with mirror_source = step_skeleton of regress_joints_mirrored, frame by frame, and
+    retarget_sequence agrees with it."""
+    from minretarget.skr import regress_joints_mirrored
+    target, sources, _ = tiny_stream
+    mirrored, by_hand = (Retargeter(tiny_weights, warn=False, mirror_source=True),
+                         Retargeter(tiny_weights, warn=False))
+    for retargeter in (mirrored, by_hand):
+        retargeter.set_target(target)
+    for points in sources[:8]:
+        want = by_hand.step_skeleton(regress_joints_mirrored(points, tiny_weights.skr))
+        np.testing.assert_array_equal(mirrored.step(points).vertices, want.vertices)
+    offline = mirrored.retarget_sequence(np.stack([s[:200] for s in sources[:8]]))
+    by_hand.reset()
+    for t, points in enumerate(sources[:8]):
+        want = by_hand.step_skeleton(regress_joints_mirrored(points[:200], tiny_weights.skr))
+        np.testing.assert_allclose(offline.joints[t], want.joints, atol=1e-5)

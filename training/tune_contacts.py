@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from minretarget.conventions import FPS, JOINT_INDEX
+from minretarget.conventions import FPS
 from minretarget.contacts import FootLock, plant_feet
 from minretarget.kinematics import forward_kinematics
-from minretarget.metrics import acceleration_error, foot_contacts, mpjpe, pa_mpjpe
+from minretarget.metrics import acceleration_error, foot_contacts, foot_speeds, mpjpe, pa_mpjpe
 from minretarget.retargeter import Retargeter
 from minretarget.smrm import initial_state
 from minretarget.weights import load_weights
@@ -68,12 +68,6 @@ def validation_streams(weights, cmu_dir, cache_dir):
     return streams
 
 
-def toe_speeds(joints):
-    """(T, J, 3) -> (T - 1, 2) horizontal toe speeds, m/s."""
-    toes = joints[:, [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]][..., [0, 2]]
-    return np.linalg.norm(np.diff(toes.astype(np.float64), axis=0), axis=-1) * FPS
-
-
 def score(weights, streams, foot_lock):
     """Pooled toe speed on the truth's contacts, the truth's own, then frame-weighted MPJPE,
     PA-MPJPE and Acc of the joints with ``foot_lock`` (None: SMRM's alone)."""
@@ -87,8 +81,8 @@ def score(weights, streams, foot_lock):
             out[t], state = plant_feet(rotations[t], root[t], tpose, state, foot_lock)
         joints = forward_kinematics(out, root, tpose)[0]
         contacts = foot_contacts(truth, CONTACT_HEIGHT)
-        speed += toe_speeds(joints)[contacts].sum()
-        truth_speed += toe_speeds(truth)[contacts].sum()
+        speed += foot_speeds(joints)[contacts].sum()
+        truth_speed += foot_speeds(truth)[contacts].sum()
         steps += contacts.sum()
         errors += len(joints) * np.array([mpjpe(joints, truth), pa_mpjpe(joints, truth),
                                           acceleration_error(joints, truth)])
