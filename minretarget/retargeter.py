@@ -69,7 +69,8 @@ class Retargeter:
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
-        return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target)
+        return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
+                   mirror_source)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.

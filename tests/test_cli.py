@@ -14,6 +14,7 @@ from conftest import GOLDEN
 from minretarget import Retargeter
 from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
+from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_NAMES, NUM_JOINTS
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
@@ -102,6 +103,31 @@ def test_array_sources_match_the_folder(inputs, folder_run, name):
     assert sorted(p.name for p in out.iterdir()) == ["result.npz"]
     np.testing.assert_allclose(load(out / "result.npz")["vertices"],
                                load(folder_run / "result.npz")["vertices"], atol=1e-5)
+
+
+@pytest.mark.parametrize("option, setting", [("--no-smoothing", {"smoothing": None}),
+                                             ("--no-foot-lock", {"foot_lock": None}),
+                                             ("--mirror-source", {"mirror_source": True})])
+def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, setting):
+    """Each option changes the result as the API's setting does. The feet are held by an
+    eager lock here: the tiny model's random toes would never plant with the defaults."""
+    eager = FootLock(plant_speed=50.0, lift_speed=50.0, height_margin=10.0,
+                     release_distance=10.0)
+    monkeypatch.setattr(cli, "FootLock", lambda: eager)
+    results = {}
+    for options in ((), (option,)):
+        out = inputs["dir"] / f"out{''.join(options)}"
+        assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+                   "--out", out, "--format", "npz", "--weights", WEIGHTS, "--overwrite",
+                   *options) == 0
+        results[options] = load(out / "result.npz")
+    retargeter = Retargeter.from_weights(WEIGHTS, **{"foot_lock": eager, **setting})
+    retargeter.set_target(inputs["target"], inputs["faces"])
+    expected = list(retargeter.run(inputs["frames"]))
+    for field in ("rotations", "vertices"):
+        got = results[(option,)][field]
+        np.testing.assert_allclose(got, [getattr(f, field) for f in expected], atol=1e-5)
+    assert np.abs(results[(option,)]["rotations"] - results[()]["rotations"]).max() > 1e-4
 
 
 def test_points_option_takes_a_seeded_subset(inputs):
