@@ -72,6 +72,19 @@ def check_foot_lock(foot_lock):
     return foot_lock
 
 
+def check_feet(state):
+    """The foot fields of a ``smrm.MotionState``, checked: finite (2, 3) toe_filtered,
+    toe_anchor, foot_offset (C-contiguous float32) and a (2,) bool feet_planted (a copy).
+    ValueError names the field."""
+    feet = [as_float32_array(getattr(state, name), f"state.{name}", (2, 3))
+            for name in ("toe_filtered", "toe_anchor", "foot_offset")]
+    planted = np.asarray(state.feet_planted)
+    if planted.shape != (2,) or planted.dtype != bool:
+        raise ValueError(f"state.feet_planted must be a (2,) bool array, got "
+                         f"{planted.dtype} {planted.shape}")
+    return (*feet, planted.copy())
+
+
 def plant_feet(rotations, root, tpose_joints, state, foot_lock=FootLock()):
     """One frame of foot contacts on SMRM's output.
 
@@ -94,9 +107,8 @@ def plant_feet(rotations, root, tpose_joints, state, foot_lock=FootLock()):
         raise ValueError("plant_feet runs after SMRM's step: state.frames_seen must be >= 1")
     enabled = foot_lock is not None
     rotations, filtered, anchor, offset, planted = _plant_feet_kernel(
-        rotations, root, tpose_joints, _PARENTS, LEGS, state.toe_filtered, state.toe_anchor,
-        state.foot_offset, state.feet_planted, state.frames_seen == 1, enabled,
-        *(foot_lock if enabled else FootLock()))
+        rotations, root, tpose_joints, _PARENTS, LEGS, *check_feet(state),
+        state.frames_seen == 1, enabled, *(foot_lock if enabled else FootLock()))
     return rotations, state._replace(toe_filtered=filtered, toe_anchor=anchor,
                                      foot_offset=offset, feet_planted=planted)
 

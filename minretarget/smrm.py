@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._jit import kernel
+from .contacts import check_feet
 from .conventions import NUM_JOINTS
 from .nn import Dense, dense, sigmoid
 from .smoothing import _parameters, _smooth_kernel, check_smoothing
@@ -85,13 +86,7 @@ def check_state(weights, state):
     if frames < 0 or frames != state.frames_seen or not 0 <= leg < np.inf:
         raise ValueError(f"state: frames_seen {state.frames_seen!r} and source_leg_length "
                          f"{state.source_leg_length!r} must be a count and a finite length >= 0")
-    feet = [as_float32_array(getattr(state, name), f"state.{name}", (2, 3))
-            for name in ("toe_filtered", "toe_anchor", "foot_offset")]
-    planted = np.asarray(state.feet_planted)
-    if planted.shape != (2,) or planted.dtype != bool:
-        raise ValueError(f"state.feet_planted must be a (2,) bool array, got "
-                         f"{planted.dtype} {planted.shape}")
-    return MotionState(encoder, decoder, previous, velocity, leg, frames, *feet, planted.copy())
+    return MotionState(encoder, decoder, previous, velocity, leg, frames, *check_feet(state))
 
 
 def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):

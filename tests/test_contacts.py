@@ -192,3 +192,16 @@ def test_the_retargeter_plants_feet_and_resumes_exactly(tiny_weights, tiny_strea
     other.state = locked.state
     for points, expected in zip(frames[middle:], locked_frames[middle:]):
         np.testing.assert_array_equal(other.step(points).vertices, expected.vertices)
+
+
+def test_bad_state_is_refused_naming_the_field():
+    tpose = human_tpose()
+    rotations, root = stepping(2)
+    state = initial_state_for_feet()._replace(frames_seen=1)
+    for field, value, match in (("toe_anchor", np.zeros((3, 3)), "state.toe_anchor"),
+                                ("foot_offset", np.full((2, 3), np.nan), "state.foot_offset"),
+                                ("feet_planted", np.zeros(2), "state.feet_planted")):
+        with pytest.raises(ValueError, match=match):
+            plant_feet(rotations[0], root[0], tpose, state._replace(**{field: value}))
+    with pytest.raises(ValueError, match="frames_seen"):
+        plant_feet(rotations[0], root[0], tpose, state._replace(frames_seen=0))
