@@ -12,7 +12,8 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     model, no foot lock  the same without the foot contacts
     model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
                          averaged with those of each cloud's mirror image
-    model, paper pipeline  neither: SKR's joints as they come, SMRM's rotations as they come
+    model, paper pipeline  the paper's: SKR once on the target T-pose (not mirror-averaged),
+                         SKR's source joints as they come, SMRM's rotations as they come
     analytic             the model's (smoothed) source bones, each target bone rotated onto its
                          source bone (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
     oracle source        ground-truth source joints instead of SKR (not smoothed; foot lock on)
@@ -88,11 +89,12 @@ def run_sequence(weights, sequence):
            "skin_weights": learned.target.skin_weights}
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
-    paper, no_lock, raw = (Retargeter(weights, smoothing=None, foot_lock=None),
-                           Retargeter(weights, foot_lock=None), Retargeter(weights, smoothing=None))
+    paper = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False)
+    paper.set_target(points)                         # its own rig: SKR once on the T-pose
+    no_lock, raw = Retargeter(weights, foot_lock=None), Retargeter(weights, smoothing=None)
     mirrored = Retargeter(weights, mirror_source=True)
     oracle_rig, oracle_rig_raw = Retargeter(weights), Retargeter(weights, smoothing=None)
-    for retargeter, this_rig in ((paper, rig), (no_lock, rig), (raw, rig), (mirrored, rig),
+    for retargeter, this_rig in ((no_lock, rig), (raw, rig), (mirrored, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig)):
         retargeter.set_target(points, **this_rig)
     start = time.perf_counter()

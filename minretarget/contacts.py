@@ -5,16 +5,19 @@ should stand still slides about on the ground. Per frame and per leg, after SMRM
     1. the toe (``left_foot``/``right_foot`` joint) position is low-passed (cutoff
        ``speed_cutoff``) and its speed measured on the filtered track;
     2. a toe slower than ``plant_speed`` and no higher than the other toe plus
-       ``height_margin`` plants: its filtered position becomes the anchor;
-    3. a planted toe lifts when it is faster than ``lift_speed``, higher than the other toe
-       plus the margin, or more than ``release_distance`` from its anchor; while it stays,
-       its anchor creeps toward SMRM's toe by ``anchor_follow`` of the gap each frame (the
-       legs stay near SMRM's pose over a long contact);
+       ``height_margin`` plants where it is shown (its anchor);
+    3. a planted toe lifts when it is faster than ``lift_speed`` or higher than the other
+       toe plus the margin. While it stays, its anchor creeps toward SMRM's (filtered) toe by
+       ``anchor_follow`` of the gap each frame, so the legs stay near SMRM's pose over a long
+       contact, and it is never more than ``max_offset`` from SMRM's toe: a toe SMRM drags
+       along is dragged on a leash, smoothly, instead of dropped and planted again;
     4. while planted the leg is bent so that the toe sits on its anchor: the whole foot moves
        by offset = anchor - toe, SMRM's foot orientation is kept, and a two-bone inverse
-       kinematics on hip and knee (knee kept in its bending plane) carries the ankle; after
-       lifting, the offset shrinks by ``release_decay`` per frame, so the foot eases back to
-       SMRM's instead of jumping.
+       kinematics carries the ankle: the knee flexes about its hinge (the thigh's left axis),
+       then the leg swings about the hip. After lifting, the offset shrinks by
+       ``release_decay`` per frame, so the foot eases back to SMRM's instead of jumping.
+The height test compares the two toes, not a floor (none is known online): in a jump both
+feet can plant near the top and are held, at most ``max_offset`` away, until they speed up.
 Only the hip, knee and ankle rotations of a leg change: the skeleton, the root and the other
 joints stay as SMRM made them, and LBS of the new rotations keeps the skin on the rig.
 The state (filtered toes, anchors, offsets, which foot is planted) lives in
@@ -25,18 +28,19 @@ The defaults were chosen on validation motion, never the test split
 walking, 1,354 frames on held-out bodies, SKR and SMRM of the shipped weights): the least
 PA-MPJPE among the settings of a grid whose toes move no faster over the ground truth's
 contacts than the truth's own. The toe speed there fell from 0.35 to 0.19 m/s (the truth's:
-0.19), for MPJPE 0.0716 -> 0.0722 m and PA-MPJPE 0.0397 -> 0.0406 m.
+0.19), for MPJPE 0.0697 -> 0.0705 m and PA-MPJPE 0.0393 -> 0.0405 m.
 """
 from typing import NamedTuple
 
 import numpy as np
 
 from ._jit import kernel
-from .conventions import FPS, JOINT_INDEX, NUM_JOINTS, UP_AXIS
+from .conventions import FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS, UP_AXIS
 from .kinematics import _PARENTS, _forward_kinematics_kernel, check_quaternion_norms
 from .smoothing import _smoothing_factor
 from .validation import as_float32_array
 
+_LEFT = np.eye(3)[LEFT_AXIS]     # the T-pose's left axis, about which knees flex
 # Per leg: hip, knee, ankle, toe; legs in order left, right.
 LEGS = np.array([[JOINT_INDEX[f"{side}_{name}"] for name in ("hip", "knee", "ankle", "foot")]
                  for side in ("left", "right")], dtype=np.int64)
@@ -47,26 +51,31 @@ class FootLock(NamedTuple):
     lift_speed: float = 2.0         # m/s: a faster one lifts
     speed_cutoff: float = 12.0      # Hz: low-pass of the toe track the speed is measured on
     height_margin: float = 0.05     # m: a toe plants only this close above the other toe
-    release_distance: float = 0.1   # m: SMRM's toe this far from the anchor lifts the foot
+    max_offset: float = 0.05        # m: a planted toe is held at most this far from SMRM's:
+    #                                 beyond, its anchor is dragged along (a leash)
     release_decay: float = 0.5      # fraction of the offset kept each frame after lifting
-    anchor_follow: float = 0.1      # fraction of the way a planted toe's anchor moves each
+    anchor_follow: float = 0.05     # fraction of the way a planted toe's anchor moves each
     #                                 frame toward SMRM's (filtered) toe: a slow creep that
     #                                 keeps the legs near SMRM's pose over long contacts
 
 
 def check_foot_lock(foot_lock):
-    """A FootLock with speeds and distances > 0 and a decay in [0, 1), or None (off)."""
+    """A FootLock (or its 7 values in order) with speeds, cutoff and offset finite and > 0,
+    plant_speed <= lift_speed, decay and follow in [0, 1); or None (off)."""
     if foot_lock is None:
         return None
     try:
+        if len(foot_lock) != len(FootLock._fields):
+            raise ValueError
         foot_lock = FootLock(*map(float, foot_lock))
     except (TypeError, ValueError):
-        raise ValueError(f"foot_lock must be a FootLock or None, got {foot_lock!r}") from None
+        raise ValueError(f"foot_lock must be a FootLock (its {len(FootLock._fields)} values) "
+                         f"or None, got {foot_lock!r}") from None
     positive = foot_lock[:5]
     if not (all(0 < value < np.inf for value in positive)
             and foot_lock.plant_speed <= foot_lock.lift_speed
             and 0 <= foot_lock.release_decay < 1 and 0 <= foot_lock.anchor_follow < 1):
-        raise ValueError(f"foot_lock: speeds, cutoff and distances must be finite and > 0, "
+        raise ValueError(f"foot_lock: speeds, cutoff and max_offset must be finite and > 0, "
                          f"plant_speed <= lift_speed, release_decay and anchor_follow in "
                          f"[0, 1); got {foot_lock}")
     return foot_lock
@@ -158,13 +167,12 @@ def _turn_between(u, v):
 # ----------------------------------------------------------------------------- the stage
 
 @kernel
-def _bend_leg(rotations, joints, global_pelvis, leg, goal, bend_axis):
+def _bend_leg(rotations, joints, global_pelvis, leg, goal):
     """Two-bone IK in place: turn the leg's hip and knee so its ankle reaches ``goal`` (as
     near as the bone lengths allow), keeping the ankle's world orientation.
 
     rotations (J, 4) local quaternions, float32, changed in place; joints (J, 3) float64 the
-    pose's joints; global_pelvis (4,) float64; leg (4,) hip, knee, ankle, toe; goal (3,);
-    bend_axis (3,) the axis a straight knee bends about (the body's left)."""
+    pose's joints; global_pelvis (4,) float64; leg (4,) hip, knee, ankle, toe; goal (3,)."""
     hip, knee, ankle = leg[0], leg[1], leg[2]
     global_hip = _multiply(global_pelvis, rotations[hip].astype(np.float64))
     global_knee = _multiply(global_hip, rotations[knee].astype(np.float64))
@@ -172,18 +180,31 @@ def _bend_leg(rotations, joints, global_pelvis, leg, goal, bend_axis):
     thigh_length = np.sqrt(np.sum(thigh * thigh))
     shank_length = np.sqrt(np.sum(shank * shank))
     reach = np.sqrt(np.sum((goal - joints[hip]) ** 2))
-    reach = min(max(reach, abs(thigh_length - shank_length) + 1e-4),
-                thigh_length + shank_length - 1e-4)
-    # 1. Bend the knee (about the axis normal to thigh and shank) to the bend whose
-    #    hip-ankle distance is the reach (law of cosines).
-    normal = np.cross(thigh, shank)
-    normal_length = np.sqrt(np.sum(normal * normal))
-    bend = np.arctan2(normal_length, np.sum(thigh * shank))       # 0: straight
-    if normal_length < 1e-6 * thigh_length * shank_length:
-        normal = bend_axis                      # a straight leg bends like a knee does
-    cosine = (thigh_length ** 2 + shank_length ** 2 - reach ** 2) / (2 * thigh_length
-                                                                     * shank_length)
-    knee_turn = _axis_angle(normal, np.pi - np.arccos(min(max(cosine, -1.0), 1.0)) - bend)
+    # 1. Bend the knee about its hinge, the T-pose's left axis carried by the thigh (a knee
+    #    flexes about it whatever the skeleton's rest bend), by the angle t whose hip-ankle
+    #    distance is the reach: with the shank v = v_along + v_across about the hinge n,
+    #    |thigh + v(t)|^2 = reach^2 gives A cos t + B sin t = C (A = thigh . v_across,
+    #    B = thigh . (n x v_across)). Of its two roots, the smaller turn that does not bend
+    #    the knee backwards.
+    hinge = _rotate(global_hip, _LEFT)
+    along = np.sum(shank * hinge) * hinge
+    across = shank - along
+    a = np.sum(thigh * across)
+    b = np.sum(thigh * np.cross(hinge, across))
+    c = 0.5 * (reach ** 2 - thigh_length ** 2 - shank_length ** 2) - np.sum(thigh * along)
+    radius = np.sqrt(a * a + b * b)
+    turn = 0.0
+    if radius > 1e-9:
+        phase = np.arctan2(b, a)
+        spread = np.arccos(min(max(c / radius, -1.0), 1.0))     # the nearest when unreachable
+        flexion = np.arctan2(np.sum(np.cross(thigh, shank) * hinge), np.sum(thigh * shank))
+        best = np.inf
+        for root in (phase - spread, phase + spread):
+            root = (root + np.pi) % (2 * np.pi) - np.pi           # into [-pi, pi)
+            cost = abs(root) + (0.0 if flexion + root >= 0 else np.pi)  # backwards: last
+            if cost < best:
+                best, turn = cost, root
+    knee_turn = _axis_angle(hinge, turn)
     ankle_bent = joints[knee] + _rotate(knee_turn, shank)
     # 2. Swing the whole leg about the hip so that the ankle points at the goal.
     hip_turn = _turn_between(ankle_bent - joints[hip], goal - joints[hip])
@@ -200,8 +221,7 @@ def _bend_leg(rotations, joints, global_pelvis, leg, goal, bend_axis):
 @kernel
 def _plant_feet_kernel(rotations, root, tpose, parents, legs, toe_filtered, toe_anchor,
                        foot_offset, feet_planted, first, enabled, plant_speed, lift_speed,
-                       speed_cutoff, height_margin, release_distance, release_decay,
-                       anchor_follow):
+                       speed_cutoff, height_margin, max_offset, release_decay, anchor_follow):
     joints32 = np.empty((1, rotations.shape[0], 3), dtype=np.float32)
     global_rotations = np.empty((1, rotations.shape[0], 3, 3), dtype=np.float32)
     _forward_kinematics_kernel(rotations.reshape(1, -1, 4), root.reshape(1, 3),
@@ -216,25 +236,26 @@ def _plant_feet_kernel(rotations, root, tpose, parents, legs, toe_filtered, toe_
     offset = foot_offset.astype(np.float64)
     planted = feet_planted.copy()
     out = rotations.copy()
-    left = joints[legs[0, 0]] - joints[legs[1, 0]]          # the pelvis's left axis
-    left = left / np.sqrt(np.sum(left * left))
     global_pelvis = rotations[0].astype(np.float64)
     for side in range(2):
         speed = 0.0 if first else np.sqrt(np.sum((filtered[side] - toe_filtered[side]) ** 2)) * FPS
         low = toes[side, UP_AXIS] <= toes[1 - side, UP_AXIS] + height_margin
         if planted[side]:
-            away = np.sqrt(np.sum((anchor[side] - toes[side]) ** 2))
-            planted[side] = enabled and low and speed <= lift_speed and away <= release_distance
+            planted[side] = enabled and low and speed <= lift_speed
         elif enabled and not first and low and speed < plant_speed:
             planted[side] = True
-            anchor[side] = filtered[side]
+            anchor[side] = toes[side] + offset[side]     # where the toe is shown: no jump
         if planted[side]:
             anchor[side] = anchor[side] + anchor_follow * (filtered[side] - anchor[side])
+            gap = anchor[side] - toes[side]
+            distance = np.sqrt(np.sum(gap * gap))
+            if distance > max_offset:                    # the leash: dragged, not dropped
+                anchor[side] = toes[side] + gap * (max_offset / distance)
             offset[side] = anchor[side] - toes[side]
         else:
             offset[side] = release_decay * offset[side]
         if np.sqrt(np.sum(offset[side] ** 2)) > 1e-5:       # under 0.01 mm: leave the leg
             _bend_leg(out, joints, global_pelvis, legs[side],
-                      joints[legs[side, 2]] + offset[side], left)
+                      joints[legs[side, 2]] + offset[side])
     return (out, filtered.astype(np.float32), anchor.astype(np.float32),
             offset.astype(np.float32), planted)

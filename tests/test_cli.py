@@ -112,7 +112,7 @@ def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, sett
     """Each option changes the result as the API's setting does. The feet are held by an
     eager lock here: the tiny model's random toes would never plant with the defaults."""
     eager = FootLock(plant_speed=50.0, lift_speed=50.0, height_margin=10.0,
-                     release_distance=10.0)
+                     max_offset=10.0)
     monkeypatch.setattr(cli, "FootLock", lambda: eager)
     results = {}
     for options in ((), (option,)):

@@ -118,25 +118,34 @@ def test_a_standing_foot_stays_put_and_a_swinging_one_is_left_alone():
     np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1, atol=1e-6)
 
 
-def test_ik_by_hand_a_straight_leg_bends_its_knee_forward():
+@pytest.mark.parametrize("rest_knee", [(0.09, 0.50, 0.0), (0.13, 0.50, 0.0),
+                                       (0.10, 0.50, 0.01)])
+def test_ik_by_hand_the_knee_flexes_forward_about_its_hinge(rest_knee):
     """Identity pose, left toe anchored 10 cm above where it is: the ankle rises 10 cm, the
-    leg's bones keep their lengths (FK), the knee goes forward (+Z), the foot keeps its
-    orientation (toe - ankle unchanged)."""
+    foot keeps its orientation (toe - ankle unchanged), the right leg is untouched, and the
+    knee goes forward (+Z), not sideways: for an exactly straight leg (no bend plane at
+    all), a knee kinked 4 cm sideways at rest (its bend plane is the wrong one) and a
+    slightly bent one."""
     tpose = human_tpose()
+    knee, ankle, toe = (JOINT_INDEX[f"left_{name}"] for name in ("knee", "ankle", "foot"))
+    tpose[knee] = rest_knee
+    tpose[ankle] = (0.09, 0.08, 0.0)
+    tpose[toe] = tpose[ankle] + (0.01, -0.06, 0.13)
     identity = np.zeros((NUM_JOINTS, 4), np.float32)
     identity[:, 0] = 1
     root = tpose[0]
     state = initial_state_for_feet()._replace(
         frames_seen=2, feet_planted=np.array([True, False]),
-        toe_filtered=tpose[TOES], toe_anchor=tpose[TOES] + [[0, 0.1, 0], [0, 0, 0]])
-    out, state = plant_feet(identity, root, tpose, state,
-                            FootLock(release_distance=0.2, anchor_follow=0.0))
+        toe_filtered=tpose[TOES], toe_anchor=tpose[TOES] + [[0, 0.1, 0], [0, 0, 0]],
+        foot_offset=np.array([[0, 0.1, 0], [0, 0, 0]], np.float32))
+    out, state = plant_feet(identity, root, tpose, state, FootLock(max_offset=0.2,
+                                                                   anchor_follow=0.0))
     assert state.feet_planted.all()           # the right foot plants where it is: no move
     joints = forward_kinematics(out, root, tpose)[0]
-    knee, ankle, toe = (JOINT_INDEX[f"left_{name}"] for name in ("knee", "ankle", "foot"))
     np.testing.assert_allclose(joints[ankle], tpose[ankle] + [0, 0.1, 0], atol=1e-5)
     np.testing.assert_allclose(joints[toe] - joints[ankle], tpose[toe] - tpose[ankle], atol=1e-5)
-    assert joints[knee, 2] > tpose[knee, 2] + 0.05
+    moved = joints[knee] - tpose[knee]
+    assert moved[2] > 0.1 and abs(moved[0]) < 0.01, moved
     np.testing.assert_array_equal(out[LEG_JOINTS[3:]], identity[LEG_JOINTS[3:]])   # right leg
 
 
@@ -159,10 +168,10 @@ def test_lifting_eases_back_by_the_decay():
     np.testing.assert_array_equal(new, rotations[25])
 
 
-@pytest.mark.parametrize("bad", [(0, 2, 12, 0.05, 0.2, 0.5), (3, 2, 12, 0.05, 0.2, 0.5),
-                                 (2, 2, 12, 0.05, 0.2, 0.5, -0.1),
-                                 (2, 2, 12, 0.05, 0.2, 1.0), (2, 2, np.inf, 0.05, 0.2, 0.5),
-                                 (2, 2, 12, "x", 0.2, 0.5), "fast"])
+@pytest.mark.parametrize("bad", [(0, 2, 12, 0.05, 0.2, 0.5, 0.1), (3, 2, 12, 0.05, 0.2, 0.5, 0.1),
+                                 (2, 2, 12, 0.05, 0.2, 1.0, 0.1), (2, 2, np.inf, 0.05, 0.2, 0.5, 0.1),
+                                 (2, 2, 12, 0.05, 0.2, 0.5, -0.1), (2, 2, 12, "x", 0.2, 0.5, 0.1),
+                                 (2, 2, 12, 0.05, 0.2, 0.5), (1.0,), "fast"])
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ValueError, match="foot_lock"):
         check_foot_lock(bad)

@@ -129,8 +129,10 @@ def _matrix_to_quaternion(m):
 def plant_feet(rotations, root, tpose, lock, fps=30.0):
     """(T, J, 4), (T, 3), (J, 3), FootLock -> new rotations (T, J, 4) and planted (T, 2):
     minretarget.contacts over a whole sequence, with rotation matrices instead of
-    quaternions (two-bone IK: bend the knee by the law of cosines, swing the leg at the hip,
-    keep the ankle's world orientation)."""
+    quaternions. Two-bone IK: the knee turns about its hinge (the thigh's x axis) by the
+    angle found numerically (a fine scan of the turns that put the ankle at the reach, then
+    the smallest that does not bend the knee backwards), the leg swings at the hip, the
+    ankle keeps its world orientation."""
     legs = ((1, 4, 7, 10), (2, 5, 8, 11))
     a = 1.0 - 1.0 / (1.0 + 2.0 * np.pi * lock.speed_cutoff / fps)
     out = np.array(rotations, np.float64)
@@ -142,34 +144,27 @@ def plant_feet(rotations, root, tpose, lock, fps=30.0):
         previous = toes if filtered is None else filtered
         filtered = toes if filtered is None else filtered + a * (toes - filtered)
         speed = np.linalg.norm(filtered - previous, axis=1) * fps
-        left = joints[1] - joints[2]
         for side, (hip, knee, ankle, toe) in enumerate(legs):
             low = toes[side, 1] <= toes[1 - side, 1] + lock.height_margin
             if planted[side]:
-                planted[side] = (low and speed[side] <= lock.lift_speed
-                                 and np.linalg.norm(anchor[side] - toes[side])
-                                 <= lock.release_distance)
+                planted[side] = low and speed[side] <= lock.lift_speed
             elif t > 0 and low and speed[side] < lock.plant_speed:
-                planted[side], anchor[side] = True, filtered[side]
+                planted[side], anchor[side] = True, toes[side] + offset[side]
             if planted[side]:
                 anchor[side] = anchor[side] + lock.anchor_follow * (filtered[side] - anchor[side])
-            offset[side] = (anchor[side] - toes[side] if planted[side]
-                            else lock.release_decay * offset[side])
+                gap = anchor[side] - toes[side]
+                if np.linalg.norm(gap) > lock.max_offset:
+                    anchor[side] = toes[side] + gap * lock.max_offset / np.linalg.norm(gap)
+                offset[side] = anchor[side] - toes[side]
+            else:
+                offset[side] = lock.release_decay * offset[side]
             planted_all[t, side] = planted[side]
             if np.linalg.norm(offset[side]) <= 1e-5:
                 continue
             goal = joints[ankle] + offset[side]
-            thigh, shank = joints[knee] - joints[hip], joints[ankle] - joints[knee]
-            l1, l2 = np.linalg.norm(thigh), np.linalg.norm(shank)
-            reach = np.clip(np.linalg.norm(goal - joints[hip]), abs(l1 - l2) + 1e-4,
-                            l1 + l2 - 1e-4)
-            normal = np.cross(thigh, shank)
-            bend = np.arctan2(np.linalg.norm(normal), thigh @ shank)
-            if np.linalg.norm(normal) < 1e-6 * l1 * l2:
-                normal = left
-            knee_turn = _turn(normal, np.pi - np.arccos(np.clip(
-                (l1 * l1 + l2 * l2 - reach * reach) / (2 * l1 * l2), -1, 1)) - bend)
-            bent = joints[knee] + knee_turn @ shank - joints[hip]
+            knee_turn = _hinge_turn(joints[hip], joints[knee], joints[ankle], world[hip][:, 0],
+                                    np.linalg.norm(goal - joints[hip]))
+            bent = joints[knee] + knee_turn @ (joints[ankle] - joints[knee]) - joints[hip]
             wanted = goal - joints[hip]
             axis = np.cross(bent, wanted)
             hip_turn = (np.eye(3) if np.linalg.norm(axis) < 1e-9 else _turn(
@@ -179,3 +174,29 @@ def plant_feet(rotations, root, tpose, lock, fps=30.0):
                                  (ankle, new_knee.T @ world[ankle])):
                 out[t, joint] = _matrix_to_quaternion(local)
     return out, planted_all
+
+
+def _hinge_turn(hip, knee, ankle, hinge, reach):
+    """3 x 3 turn of the shank about ``hinge`` (through the knee) that brings the ankle
+    nearest to ``reach`` from the hip: scan the circle of turns, refine the best crossing."""
+    thigh, shank = knee - hip, ankle - knee
+    flexion = np.arctan2(np.cross(thigh, shank) @ hinge, thigh @ shank)
+
+    def miss(angle):
+        return np.linalg.norm(thigh + _turn(hinge, angle) @ shank) - reach
+
+    angles = np.linspace(-np.pi, np.pi, 3601)
+    misses = np.array([miss(angle) for angle in angles])
+    # Candidates: sign changes (refined by bisection), else the least miss.
+    candidates = []
+    for k in np.nonzero(np.sign(misses[:-1]) != np.sign(misses[1:]))[0]:
+        lo, hi = angles[k], angles[k + 1]
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.sign(miss(mid)) == np.sign(miss(lo)) else (lo, mid)
+        candidates.append(0.5 * (lo + hi))
+    if not candidates:
+        candidates = [angles[np.argmin(np.abs(misses))]]
+    best = min(candidates, key=lambda angle: abs(angle) + (0 if flexion + angle >= 0
+                                                           else np.pi))
+    return _turn(hinge, best)

@@ -14,6 +14,7 @@ faster on the truth's contacts than the truth's own do.
 """
 import argparse
 import dataclasses
+import hashlib
 import itertools
 import sys
 from pathlib import Path
@@ -26,28 +27,27 @@ from minretarget.kinematics import forward_kinematics
 from minretarget.metrics import acceleration_error, foot_contacts, foot_speeds, mpjpe, pa_mpjpe
 from minretarget.retargeter import Retargeter
 from minretarget.smrm import initial_state
-from minretarget.weights import load_weights
+from minretarget.weights import flatten_weights, load_weights
 from training.data.bodies import body_from_seed, sampled_body_seeds
 from training.data.cmu import cmu_tpose_joints, list_trials, load_motion
 from training.data.datasets import VALIDATION_SUBJECTS, benchmark_sequence
 
 TRIALS, MAX_FRAMES, CONTACT_HEIGHT = 12, 240, 0.03
-GRID = {"plant_speed": (0.5, 1.0, 2.0), "lift_speed": (2.0, 3.0), "speed_cutoff": (6.0, 12.0),
-        "height_margin": (0.05,), "release_distance": (0.07, 0.1, 0.15),
+GRID = {"plant_speed": (1.0, 2.0), "lift_speed": (2.0,), "speed_cutoff": (12.0,),
+        "height_margin": (0.05,), "max_offset": (0.03, 0.04, 0.05, 0.07, 0.1),
         "release_decay": (0.5,), "anchor_follow": (0.05, 0.1, 0.15, 0.2)}
 
 
 def validation_streams(weights, cmu_dir, cache_dir):
     """[(name, SMRM rotations (T, J, 4), root (T, 3), target T-pose (J, 3), truth joints
-    (T, J, 3))]: built and retargeted once, then read from ``cache_dir``."""
-    cache_dir = Path(cache_dir)
+    (T, J, 3))]: built and retargeted once, then read from ``cache_dir``/<weights' hash>."""
+    cache_dir = Path(cache_dir) / weights_digest(weights)[:16]
     cache_dir.mkdir(parents=True, exist_ok=True)
     trials = [t for t in list_trials(cmu_dir) if t.subject in VALIDATION_SUBJECTS]
     actor_hip_height = float(cmu_tpose_joints(trials[0].path)[0, 1])
     bodies = [body_from_seed(seed) for seed in sampled_body_seeds(15, "val")]
-    rng = np.random.default_rng(0)
     streams = []
-    for k, index in enumerate(rng.permutation(len(trials))[:TRIALS]):
+    for k, index in enumerate(np.random.default_rng(0).permutation(len(trials))[:TRIALS]):
         trial = trials[index]
         path = cache_dir / f"{trial.name}.npz"
         if not path.is_file():
@@ -55,7 +55,7 @@ def validation_streams(weights, cmu_dir, cache_dir):
             motion = dataclasses.replace(motion, rotations=motion.rotations[:MAX_FRAMES],
                                          root=motion.root[:MAX_FRAMES])
             sequence = benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
-                                          2048, actor_hip_height, rng)
+                                          2048, actor_hip_height, np.random.default_rng([0, k]))
             retargeter = Retargeter(weights, warn=False, foot_lock=None)
             retargeter.set_target(sequence["target_tpose_points"])
             frames = retargeter.retarget_sequence(sequence["source_points"])
@@ -66,6 +66,15 @@ def validation_streams(weights, cmu_dir, cache_dir):
             streams.append((trial.name, data["rotations"], data["root"], data["tpose"],
                             data["truth"]))
     return streams
+
+
+def weights_digest(weights):
+    """SHA-256 of the weights' arrays, so that a cache made with others is not reused."""
+    digest = hashlib.sha256()
+    for name, array in sorted(flatten_weights(weights).items()):
+        digest.update(name.encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
 
 
 def score(weights, streams, foot_lock):
