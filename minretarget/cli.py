@@ -3,7 +3,8 @@
     minretarget demo [--out DIR] [--weights FILE]
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
                          [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
-                         [--weights FILE] [--resume | --overwrite]
+                         [--weights FILE] [--no-smoothing] [--no-foot-lock]
+                         [--mirror-source] [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and

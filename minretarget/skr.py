@@ -73,6 +73,8 @@ def regress_joints_mirrored(points, weights, workers=1):
     Args, Returns: as ``regress_joints``.
     """
     points = as_float32_array(points, "points", (..., None, 3))
+    if points.ndim not in (2, 3):
+        raise ValueError(f"points must have shape (P, 3) or (B, P, 3), got {points.shape}")
     mirror = np.ones(3, np.float32)
     mirror[LEFT_AXIS] = -1                                      # flip the body's left axis
     both = regress_joints(np.concatenate([points[None], points[None] * mirror]).reshape(
