@@ -273,8 +273,8 @@ def build_parser():
                                "stops on the ground is held there, the leg bent to reach it)")
     retarget.add_argument("--mirror-source", action="store_true",
                           help="average SKR's skeleton of each source cloud with the one it "
-                               "finds on the cloud's mirror image: about 1 mm more accurate, "
-                               "SKR twice as long")
+                               "finds on the cloud's mirror image: a few millimetres more "
+                               "accurate, SKR twice as long")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "
