@@ -164,8 +164,8 @@ class Retargeter:
 
     def pose(self, rotations, root):
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
-        vertices and (J, 3) joints, exactly as ``step`` does after SMRM; or T frames at once:
-        (T, J, 4) and (T, 3) -> (T, V, 3) and (T, J, 3)."""
+        vertices and (J, 3) joints, exactly as ``step`` does after SMRM and the foot
+        contacts; or T frames at once: (T, J, 4) and (T, 3) -> (T, V, 3) and (T, J, 3)."""
         if self.target is None:
             raise RuntimeError("call set_target before pose")
         target = self.target
