@@ -14,6 +14,6 @@ from .smoothing import Smoothing
 from .validation import InputWarning, TPoseWarning, UnitsWarning, UpAxisWarning
 from .weights import load_weights, save_weights
 
-__all__ = ["Retargeter", "RetargetedFrame", "Target", "Smoothing", "FootLock", "load_weights", "save_weights",
-           "InputWarning", "UnitsWarning", "UpAxisWarning", "TPoseWarning"]
+__all__ = ["Retargeter", "RetargetedFrame", "Target", "Smoothing", "FootLock", "load_weights",
+           "save_weights", "InputWarning", "UnitsWarning", "UpAxisWarning", "TPoseWarning"]
 __version__ = "0.1.0"

@@ -28,9 +28,9 @@ import warnings
 from pathlib import Path
 
 from . import __version__
-from .contacts import FootLock
 from .checkpoint import (CHECKPOINT_EVERY, TRACK, Track, prepare_out_dir, remove_checkpoint,
                          run_record, save_checkpoint)
+from .contacts import FootLock
 from .extras import MissingExtra, require
 from .outputs import FORMATS, frame_name, open_writers, parse_formats
 from .render import render

@@ -37,8 +37,8 @@ PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18,
 NUM_JOINTS = len(JOINT_NAMES)
 JOINT_INDEX = {name: index for index, name in enumerate(JOINT_NAMES)}
 # MIRROR[j]: the joint that j becomes in the body's mirror image (left and right swapped).
-MIRROR = tuple(JOINT_INDEX[name.replace("left", "<").replace("right", "left").replace("<", "right")]
-               for name in JOINT_NAMES)
+MIRROR = tuple(JOINT_INDEX[name.replace("left", "<").replace("right", "left")
+                          .replace("<", "right")] for name in JOINT_NAMES)
 
 UP_AXIS = 1          # +Y
 FORWARD_AXIS = 2     # +Z: the T-pose body faces this way

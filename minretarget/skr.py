@@ -77,11 +77,11 @@ def regress_joints_mirrored(points, weights, workers=1):
         raise ValueError(f"points must have shape (P, 3) or (B, P, 3), got {points.shape}")
     mirror = np.ones(3, np.float32)
     mirror[LEFT_AXIS] = -1                                      # flip the body's left axis
-    both = regress_joints(np.concatenate([points[None], points[None] * mirror]).reshape(
-        (-1,) + points.shape[-2:]), weights, workers)          # (2 B, J, 3): clouds, mirrors
-    plain, mirrored = both[:len(both) // 2], both[len(both) // 2:]
-    joints = (plain + mirrored[:, list(MIRROR)] * mirror) / 2
-    return joints.reshape(points.shape[:-2] + joints.shape[-2:]).astype(np.float32)
+    batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
+    both = regress_joints(np.concatenate([batch, batch * mirror]), weights, workers)
+    plain, mirrored = both[:len(batch)], both[len(batch):]              # (B, J, 3) each
+    joints = ((plain + mirrored[:, list(MIRROR)] * mirror) / 2).astype(np.float32)
+    return joints if points.ndim == 3 else joints[0]
 
 
 @functools.lru_cache(maxsize=None)

@@ -168,10 +168,11 @@ def test_lifting_eases_back_by_the_decay():
     np.testing.assert_array_equal(new, rotations[25])
 
 
-@pytest.mark.parametrize("bad", [(0, 2, 12, 0.05, 0.2, 0.5, 0.1), (3, 2, 12, 0.05, 0.2, 0.5, 0.1),
-                                 (2, 2, 12, 0.05, 0.2, 1.0, 0.1), (2, 2, np.inf, 0.05, 0.2, 0.5, 0.1),
-                                 (2, 2, 12, 0.05, 0.2, 0.5, -0.1), (2, 2, 12, "x", 0.2, 0.5, 0.1),
-                                 (2, 2, 12, 0.05, 0.2, 0.5), (1.0,), "fast"])
+@pytest.mark.parametrize("bad", [
+    (0, 2, 12, 0.05, 0.2, 0.5, 0.1), (3, 2, 12, 0.05, 0.2, 0.5, 0.1),
+    (2, 2, 12, 0.05, 0.2, 1.0, 0.1), (2, 2, np.inf, 0.05, 0.2, 0.5, 0.1),
+    (2, 2, 12, 0.05, 0.2, 0.5, -0.1), (2, 2, 12, "x", 0.2, 0.5, 0.1),
+    (2, 2, 12, 0.05, 0.2, 0.5), (1.0,), "fast"])
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ValueError, match="foot_lock"):
         check_foot_lock(bad)
