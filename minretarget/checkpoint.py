@@ -120,12 +120,12 @@ def _digest(arrays):
 
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
-               foot_lock=None, mirror_source=False):
+               foot_lock=None, mirror_source=False, refine=True):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
-    (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None) and
-    whether SKR also runs on the source's mirror images."""
+    (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
+    whether SKR also runs on the source's mirror images and whether its joints are refined."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
@@ -134,7 +134,7 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             "points": points, "seed": seed,
             "smoothing": None if smoothing is None else list(smoothing),
             "foot_lock": None if foot_lock is None else list(foot_lock),
-            "mirror_source": bool(mirror_source)}
+            "mirror_source": bool(mirror_source), "refine": bool(refine)}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):

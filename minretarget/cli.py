@@ -4,7 +4,7 @@
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
                          [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
                          [--weights FILE] [--no-smoothing] [--no-foot-lock]
-                         [--mirror-source] [--resume | --overwrite]
+                         [--mirror-source] [--no-refine] [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
@@ -45,7 +45,7 @@ DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
-                    mirror_source=False):
+                    mirror_source=False, refine=True):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -55,7 +55,8 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
             "file of your own (python -m training.train ... exports one).")
     # warn=False: the command line checks the inputs itself, naming files and options.
     return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
-                                   foot_lock=foot_lock, mirror_source=mirror_source)
+                                   foot_lock=foot_lock, mirror_source=mirror_source,
+                                   refine=refine)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -117,7 +118,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         retargeter.smoothing = None     # a skeleton source is clean: smoothing would only lag
     run = run_record(source, retargeter.target, retargeter.weights, formats, space,
                      smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
-                     mirror_source=retargeter.mirror_source, **settings)
+                     mirror_source=retargeter.mirror_source, refine=retargeter.refine,
+                     **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
         source = open_at(start)
@@ -172,7 +174,8 @@ def _retarget(args):
     space = make_space(args.units, args.up_axis)
     formats = parse_formats(args.format)
     retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
-                                 None if args.no_foot_lock else FootLock(), args.mirror_source)
+                                 None if args.no_foot_lock else FootLock(), args.mirror_source,
+                                 not args.no_refine)
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -275,6 +278,9 @@ def build_parser():
                           help="average SKR's skeleton of each source cloud with the one it "
                                "finds on the cloud's mirror image: a few millimetres more "
                                "accurate, SKR twice as long")
+    retarget.add_argument("--no-refine", action="store_true",
+                          help="use SKR's joints as they are (default: each is moved by the "
+                               "weights' joint refiner, which looks at the points around it)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

@@ -1,4 +1,4 @@
-"""Layer sizes of the three networks, shared by the runtime and the torch reference.
+"""Layer sizes of the networks, shared by the runtime and the torch reference.
 
 The defaults are the paper's sizes (Rekik et al. 2024, supplementary tables); smaller
 configurations (narrower layers, one GRU layer) are valid too and are what CPU training uses.
@@ -22,11 +22,18 @@ class ModelConfig:
     smrm_layers: int = 2
     # SKIN: per-point MLP (J*3 offsets) -> widths -> J, softmax.
     skin_widths: tuple = (256, 256)
+    # Joint refinement (not in the paper; none when refine_point_widths is empty): per-point
+    # layers 3 -> widths on each joint's refine_neighbours nearest points, max-pool, MLP
+    # (pooled + J*3 + J) -> refine_head_widths -> 3.
+    refine_point_widths: tuple = ()
+    refine_head_widths: tuple = ()
+    refine_neighbours: int = 96
     num_joints: int = NUM_JOINTS
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
-        for field in ("skr_point_widths", "skr_head_widths", "skin_widths"):
+        for field in ("skr_point_widths", "skr_head_widths", "skin_widths",
+                      "refine_point_widths", "refine_head_widths"):
             object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
         if len(self.skr_point_widths) != 3 or len(self.skr_head_widths) != 2:
             raise ValueError("skr_point_widths needs 3 widths and skr_head_widths 2, got "
@@ -35,8 +42,22 @@ class ModelConfig:
             raise ValueError(f"invalid config {self}")
         if self.num_joints != NUM_JOINTS:
             raise ValueError(f"num_joints must be {NUM_JOINTS}, got {self.num_joints}")
-        if min(self.skr_point_widths + self.skr_head_widths + self.skin_widths) < 1:
+        if min(self.skr_point_widths + self.skr_head_widths + self.skin_widths
+               + self.refine_point_widths + self.refine_head_widths) < 1:
             raise ValueError(f"every width must be positive, got {self}")
+        if self.refine_neighbours < 1 or (self.refine_head_widths
+                                          and not self.refine_point_widths):
+            raise ValueError(f"invalid refiner config {self}")
+
+    @property
+    def refines(self):
+        """Whether the weights hold a joint refiner (``minretarget.refine``)."""
+        return bool(self.refine_point_widths)
+
+    def without_refiner(self):
+        """These sizes with no joint refiner (what weights from before it have)."""
+        return dataclasses.replace(self, refine_point_widths=(), refine_head_widths=(),
+                                   refine_neighbours=ModelConfig.refine_neighbours)
 
     def to_json(self):
         return json.dumps(dataclasses.asdict(self), sort_keys=True)

@@ -12,6 +12,7 @@ import numpy as np
 from .contacts import FootLock, check_foot_lock, plant_feet
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
+from .refine import refine_joints
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import regress_joints, regress_joints_mirrored
 from .smoothing import Smoothing, check_smoothing
@@ -38,7 +39,7 @@ class RetargetedFrame(NamedTuple):
 
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
-                 foot_lock=FootLock(), mirror_target=True, mirror_source=False):
+                 foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -54,7 +55,9 @@ class Retargeter:
         (the paper's pipeline and the torch reference).
         ``mirror_source``: the same for every source frame: SKR's time doubles (with
         ``workers=2`` the cloud and its mirror image run side by side), for 3.6 mm of MPJPE
-        and 0.7 mm of PA-MPJPE on the test benchmark (README, Results)."""
+        and 0.7 mm of PA-MPJPE on the test benchmark (README, Results).
+        ``refine``: move SKR's joints with the weights' joint refiner (``refine``), if they
+        have one; False for SKR's joints as they are (the paper's pipeline)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
@@ -62,15 +65,17 @@ class Retargeter:
         self.foot_lock = check_foot_lock(foot_lock)
         self.mirror_target = bool(mirror_target)
         self.mirror_source = bool(mirror_source)
+        self.refine = bool(refine)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
-                     foot_lock=FootLock(), mirror_target=True, mirror_source=False):
+                     foot_lock=FootLock(), mirror_target=True, mirror_source=False,
+                     refine=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source)
+                   mirror_source, refine)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -148,10 +153,30 @@ class Retargeter:
         return RetargetedFrame(vertices, joints, rotations, root,
                                self._state.previous_joints.copy())
 
+    def skeleton(self, points):
+        """The source skeleton(s) that ``step`` would hand SMRM (before smoothing): SKR,
+        mirror-averaged if ``mirror_source``, refined if ``refine``.
+
+        Args:
+            points: (P, 3) or (T, P, 3) float32 source clouds, metres.
+        Returns:
+            (J, 3) or (T, J, 3) float32 joints, metres; ``step_skeleton`` takes them.
+        """
+        points = as_float32_array(points, "source points", (..., None, 3))
+        if points.ndim not in (2, 3) or points.shape[-2] < MIN_POINTS:
+            raise ValueError(f"source points must have shape (P, 3) or (T, P, 3) with P >= "
+                             f"{MIN_POINTS}, got {points.shape}")
+        return self._skr(points, self.mirror_source)
+
     def _skr(self, points, mirrored):
-        """SKR's joints of (P, 3) or (B, P, 3) clouds, averaged with the mirror image's."""
+        """SKR's joints of (P, 3) or (B, P, 3) clouds, averaged with the mirror image's if
+        ``mirrored``, then refined (if the weights have a refiner and ``refine`` is on)."""
         regress = regress_joints_mirrored if mirrored else regress_joints
-        return regress(points, self.weights.skr, self.workers)
+        joints = regress(points, self.weights.skr, self.workers)
+        if self.refine and self.weights.refine is not None:
+            joints = refine_joints(points, joints, self.weights.refine,
+                                   self.weights.config.refine_neighbours)
+        return joints
 
     def _retarget_step(self, source_joints):
         """SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""

@@ -1,4 +1,4 @@
-"""The weights file: one flat ``.npz`` holding all three networks, loaded without pickle.
+"""The weights file: one flat ``.npz`` holding every network, loaded without pickle.
 
 Keys are the dotted paths of the runtime's weight NamedTuples, e.g.
 ``skr.regressor.point.0.weight`` or ``smrm.encoder.1.hidden_weight``; linear weights are
@@ -26,6 +26,7 @@ from .atomic import atomic_write
 from .config import ModelConfig
 from .formats.npz import load_npz
 from .nn import MLP, Dense
+from .refine import RefinerWeights
 from .skr import PointNetWeights, SKRWeights
 from .smrm import GRULayer, SMRMWeights
 
@@ -40,26 +41,28 @@ class Weights(NamedTuple):
     smrm: SMRMWeights
     skin: MLP          # the skinning field
     metadata: dict
+    refine: RefinerWeights = None    # the joint refiner, if the config has one
 
 
 class _Shape(tuple):
     """A leaf of the weight template: the shape an array must have."""
 
 
+def _dense_chain(in_width, widths):
+    """Dense layers in_width -> widths[0] -> ... -> widths[-1], as a tuple of templates."""
+    return tuple(Dense(_Shape((a, b)), _Shape((b,)))
+                 for a, b in zip((in_width,) + tuple(widths[:-1]), widths))
+
+
 def _mlp_template(in_width, hidden_widths, out_width):
-    hidden, width = [], in_width
-    for h in hidden_widths:
-        hidden.append(Dense(_Shape((width, h)), _Shape((h,))))
-        width = h
-    return MLP(tuple(hidden), Dense(_Shape((width, out_width)), _Shape((out_width,))))
+    width = hidden_widths[-1] if hidden_widths else in_width
+    return MLP(_dense_chain(in_width, hidden_widths),
+               Dense(_Shape((width, out_width)), _Shape((out_width,))))
 
 
 def _pointnet_template(in_width, config, out_width):
-    widths, point, width = config.skr_point_widths, [], in_width
-    for w in widths:
-        point.append(Dense(_Shape((width, w)), _Shape((w,))))
-        width = w
-    return PointNetWeights(tuple(point),
+    widths = config.skr_point_widths
+    return PointNetWeights(_dense_chain(in_width, widths),
                            _mlp_template(widths[-1], config.skr_head_widths, out_width))
 
 
@@ -81,7 +84,13 @@ def weight_template(config):
                        Dense(_Shape((h, j * 4)), _Shape((j * 4,))),
                        Dense(_Shape((h, 3)), _Shape((3,))))
     skin = _mlp_template(j * 3, config.skin_widths, j)
-    return {"skr": skr, "smrm": smrm, "skin": skin}
+    stages = {"skr": skr, "smrm": smrm, "skin": skin}
+    if config.refines:
+        widths = config.refine_point_widths
+        stages["refine"] = RefinerWeights(
+            _dense_chain(3, widths), _mlp_template(widths[-1] + 4 * j,
+                                                   config.refine_head_widths, 3))
+    return stages
 
 
 def _leaves(tree, prefix):
@@ -109,8 +118,9 @@ def flatten_weights(weights):
     arrays = {"format_version": np.array(FORMAT_VERSION),
               "config": np.array(weights.config.to_json()),
               "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
-    for stage in ("skr", "smrm", "skin"):
-        arrays.update(_leaves(getattr(weights, stage), stage))
+    for stage in ("skr", "smrm", "skin", "refine"):
+        if getattr(weights, stage) is not None:
+            arrays.update(_leaves(getattr(weights, stage), stage))
     return arrays
 
 

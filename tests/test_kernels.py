@@ -6,6 +6,7 @@ import twins
 from minretarget.conventions import NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.nn import dense, mlp
+from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.skin import linear_blend_skinning, skinning_weights
 from minretarget.skr import regress_joints
 from minretarget.smrm import gru_layer_step, initial_state, retarget_step
@@ -28,6 +29,39 @@ def test_skr_matches_twin_for_any_point_count(tiny_weights):
         joints = regress_joints(points, tiny_weights.skr)
         assert joints.shape == (NUM_JOINTS, 3) and joints.dtype == np.float32
         np.testing.assert_allclose(joints, twins.pointnet(points, tiny_weights.skr), atol=1e-5)
+
+
+def test_refiner_matches_twin_for_any_point_count(tiny_weights):
+    """Fewer points than neighbours, between, and more than MAX_POINTS (thinned by stride)."""
+    rng = np.random.default_rng(5)
+    k = tiny_weights.config.refine_neighbours
+    for count in (k - 3, 500, MAX_POINTS + 1, 3 * MAX_POINTS):
+        points = rng.normal(size=(count, 3)).astype(np.float32)
+        joints = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+        refined = refine_joints(points, joints, tiny_weights.refine, k)
+        assert refined.shape == (NUM_JOINTS, 3) and refined.dtype == np.float32
+        np.testing.assert_allclose(refined, twins.refine_joints(points, joints,
+                                                                tiny_weights.refine, k),
+                                   atol=1e-5, err_msg=f"{count} points")
+        assert np.abs(refined - joints).max() > 1e-3        # it does move the joints
+
+
+def test_refiner_batches_and_is_translation_equivariant_and_order_invariant(tiny_weights):
+    rng = np.random.default_rng(6)
+    k, net = tiny_weights.config.refine_neighbours, tiny_weights.refine
+    points = rng.normal(size=(2, 300, 3)).astype(np.float32)
+    joints = rng.normal(size=(2, NUM_JOINTS, 3)).astype(np.float32)
+    batch = refine_joints(points, joints, net, k)
+    for b in range(2):
+        np.testing.assert_allclose(batch[b], refine_joints(points[b], joints[b], net, k),
+                                   atol=1e-6)
+    shift = np.float32([5.0, -2.0, 3.0])
+    np.testing.assert_allclose(refine_joints(points[0] + shift, joints[0] + shift, net, k),
+                               batch[0] + shift, atol=1e-4)
+    np.testing.assert_allclose(refine_joints(rng.permutation(points[0]), joints[0], net, k),
+                               batch[0], atol=1e-5)
+    with pytest.raises(ValueError, match="joints"):
+        refine_joints(points, joints[0], net, k)
 
 
 def test_skr_is_translation_equivariant_and_order_invariant(tiny_weights):

@@ -8,6 +8,8 @@ from make_golden import reference_outputs  # noqa: E402
 from reference_models import random_reference, random_stream  # noqa: E402
 
 from minretarget.config import ModelConfig  # noqa: E402
+from minretarget.conventions import NUM_JOINTS  # noqa: E402
+from minretarget.refine import refine_joints  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
 from minretarget.skin import linear_blend_skinning, skinning_weights  # noqa: E402
 from minretarget.skr import regress_joints  # noqa: E402
@@ -24,7 +26,8 @@ def tiny_model():
 
 
 def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp_path):
-    export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin)
+    export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin,
+                   refine=tiny_model.refine)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None,      # as torch
                                          foot_lock=None, mirror_target=False)
     target, sources = random_stream(seed=1, frames=60)
@@ -47,7 +50,8 @@ def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights
     want = reference_outputs(tiny_model, target, sources)
     for key, value in want.items():
         np.testing.assert_allclose(golden[f"torch_{key}"], value, atol=1e-6, err_msg=key)
-    exported = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin)
+    exported = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin,
+                               refine=tiny_model.refine)
     flat = lambda weights: np.concatenate([np.ravel(a) for a in leaves(weights)])  # noqa: E731
     np.testing.assert_array_equal(flat(exported), flat(tiny_weights))
 
@@ -124,9 +128,27 @@ def test_paper_size_stages_match_torch(tmp_path):
         np.testing.assert_allclose(frame.joints, want_fk[0, t].numpy(), atol=TOLERANCE)
 
 
+def test_refiner_at_the_cpu_recipe_sizes_matches_torch():
+    """The shipped refiner's widths and neighbour count, on 2,048 points and on 5,000 (which
+    both sides thin by the same stride)."""
+    from training.recipe import load_recipe
+    model = random_reference(load_recipe("cpu").model, seed=6)
+    weights = runtime_weights(model.skr, model.smrm, model.skin, refine=model.refine)
+    rng = np.random.default_rng(6)
+    for count in (2048, 5000):
+        points = (rng.normal(size=(2, count, 3)) * [0.3, 0.8, 0.15]).astype(np.float32)
+        joints = points[:, :NUM_JOINTS] + rng.normal(0, 0.05, (2, NUM_JOINTS, 3)).astype(
+            np.float32)
+        with torch.no_grad():
+            want = model.refine(torch.from_numpy(points), torch.from_numpy(joints)).numpy()
+        got = refine_joints(points, joints, weights.refine, weights.config.refine_neighbours)
+        np.testing.assert_allclose(got, want, atol=TOLERANCE, err_msg=f"{count} points")
+
+
 def test_batch_norm_is_folded_with_running_statistics(tiny_model):
     """Export folds eval-mode batch norm: the exported SKR equals torch in eval mode only."""
-    weights = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin)
+    weights = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin,
+                               refine=tiny_model.refine)
     points = np.random.default_rng(5).normal(size=(4, 200, 3)).astype(np.float32)
     with torch.no_grad():
         want = tiny_model.skr(torch.from_numpy(points)).numpy()

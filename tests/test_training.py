@@ -8,6 +8,7 @@ torch = pytest.importorskip("torch")
 
 from minretarget import Retargeter  # noqa: E402
 from minretarget.conventions import NUM_JOINTS, PARENTS  # noqa: E402
+from minretarget.weights import flatten_weights, load_weights, save_weights  # noqa: E402
 from training import kinematics  # noqa: E402
 from training.losses import rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
@@ -16,8 +17,10 @@ from training.train import main, retarget_ground_truth, source_noise  # noqa: E4
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
     "model": {"skr_point_widths": [8, 16, 32], "skr_head_widths": [16, 16], "smrm_hidden": 16,
-              "smrm_layers": 1, "skin_widths": [16]},
+              "smrm_layers": 1, "skin_widths": [16], "refine_point_widths": [8, 16],
+              "refine_head_widths": [16], "refine_neighbours": 20},
     "skr": {"steps": 6, "batch_size": 4, "points": 80, "eval_every": 3},
+    "refine": {"steps": 4, "batch_size": 4, "min_points": 60, "eval_every": 2},
     "skin": {"steps": 4, "batch_size": 2, "points": 50, "eval_every": 2},
     "smrm": {"steps": 4, "batch_size": 3, "eval_every": 2, "discriminator_width": 8},
 }
@@ -79,13 +82,14 @@ def run(tmp_path_factory):
 
 def test_all_stages_train_log_and_export_loadable_weights(run):
     out = run / "run"
-    for stage in ("skr", "skin", "smrm"):
+    for stage in ("skr", "refine", "skin", "smrm"):
         rows = (out / f"{stage}.csv").read_text().splitlines()
         assert len(rows) == 3                     # header + two evaluations
         assert (out / f"{stage}.png").stat().st_size > 0
     retargeter = Retargeter.from_weights(out / "weights.npz")
     assert retargeter.weights.metadata["recipe"]["name"] == "tiny"
     assert retargeter.weights.config.smrm_layers == 1
+    assert retargeter.weights.refine is not None
     retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))
     frame = retargeter.step(np.random.default_rng(2).normal(size=(100, 3)))
     assert np.isfinite(frame.vertices).all()
@@ -116,13 +120,33 @@ def test_init_trains_listed_stages_and_keeps_the_others(run, tmp_path):
     after = np.load(tmp_path / "tuned" / "weights.npz")
     assert sorted(before.files) == sorted(after.files)
     for key in before.files:
-        if key.startswith(("skr.", "skin.")):
+        if key.startswith(("skr.", "skin.", "refine.")):
             np.testing.assert_allclose(after[key], before[key], rtol=1e-6, atol=1e-7,
                                        err_msg=key)
     assert any(not np.array_equal(after[k], before[k]) for k in before.files
                if k.startswith("smrm."))
     metadata = json.loads(str(after["metadata"]))
     assert metadata["init"]["recipe"]["name"] == "tiny"
+
+
+def test_refiner_trains_on_weights_from_before_it(run, tmp_path):
+    """--init with a file that has no refiner (as the shipped weights before it): ``refine``
+    trains a fresh one on that file's SKR and the export holds both."""
+    whole = load_weights(run / "run" / "weights.npz")
+    old = whole._replace(config=whole.config.without_refiner(), refine=None)
+    save_weights(tmp_path / "old.npz", old)
+    main(["refine", "--init", str(tmp_path / "old.npz"), "--recipe", str(run / "tiny.json"),
+          "--data", str(run), "--out", str(tmp_path / "refined"), "--threads", "1"])
+    new = load_weights(tmp_path / "refined" / "weights.npz")
+    assert new.config == whole.config and new.refine is not None
+    before, after = flatten_weights(old), flatten_weights(new)
+    assert set(after) - set(before) == {k for k in after if k.startswith("refine.")} != set()
+    for key, value in before.items():
+        if key.startswith(("skr.", "smrm.", "skin.")):
+            np.testing.assert_allclose(after[key], value, rtol=1e-6, atol=1e-7, err_msg=key)
+    rows = (tmp_path / "refined" / "refine.csv").read_text().splitlines()
+    assert rows[0].split(",")[2:] == ["loss", "val_mpjpe", "val_mpjpe_skr", "val_tpose_mpjpe",
+                                      "val_tpose_mpjpe_skr"]
 
 
 def test_scratch_retrains_a_stage_as_from_random_initialisation(run, tmp_path):

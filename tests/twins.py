@@ -60,6 +60,23 @@ def pointnet(points, weights):
     return mlp(features(x, weights.regressor, 1), weights.regressor.head).reshape(-1, 3) + centroid
 
 
+def refine_joints(points, joints, weights, neighbours, max_points=2048, scale=0.1):
+    """(P, 3), (J, 3) -> (J, 3): the joint refiner as described in minretarget.refine, with a
+    full sort for the nearest points and one joint at a time."""
+    points = points[::-(-len(points) // max_points)]
+    k = min(neighbours, len(points))
+    refined = np.empty(joints.shape)
+    for j, joint in enumerate(joints):
+        nearest = np.argsort(((points - joint) ** 2).sum(axis=1))[:k]
+        x = (points[nearest] - joint) / scale
+        for layer in weights.point:
+            x = dense(x, layer, True)
+        one_hot = np.eye(len(joints))[j]
+        head_input = np.concatenate([x.max(axis=0), (joints - joint).ravel(), one_hot])
+        refined[j] = joint + scale * mlp(head_input[None], weights.head)[0]
+    return refined
+
+
 def gru_layer_step(x, h, layer):
     """torch.nn.GRU's cell: gates ordered reset, update, new."""
     sigmoid = lambda v: 1 / (1 + np.exp(-v))  # noqa: E731

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from minretarget.nn import MLP, Dense
+from minretarget.refine import RefinerWeights
 from minretarget.skr import PointNetWeights, SKRWeights
 from minretarget.smrm import GRULayer, SMRMWeights
 from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
@@ -43,6 +44,11 @@ def _head(head):
     return MLP(hidden, _dense(head.output))
 
 
+def _linears(sequential):
+    """The nn.Linear layers of a Sequential (activations between them) -> tuple of Dense."""
+    return tuple(_dense(m) for m in sequential if isinstance(m, torch.nn.Linear))
+
+
 def _gru(gru):
     return tuple(GRULayer(_array(getattr(gru, f"weight_ih_l{i}").T),
                           _array(getattr(gru, f"weight_hh_l{i}").T),
@@ -51,8 +57,9 @@ def _gru(gru):
                  for i in range(gru.num_layers))
 
 
-def runtime_weights(skr, smrm, skin, metadata=None):
-    """The three torch modules -> minretarget Weights (checked against their config)."""
+def runtime_weights(skr, smrm, skin, metadata=None, refine=None):
+    """The torch modules -> minretarget Weights (checked against their config); ``refine``
+    the JointRefiner, if the config has one."""
     config = smrm.config
 
     def transform(net):
@@ -63,16 +70,18 @@ def runtime_weights(skr, smrm, skin, metadata=None):
         PointNetWeights(_point_layers(skr.first) + _point_layers(skr.rest), _head(skr.head)))
     smrm_weights = SMRMWeights(_gru(smrm.encoder), _gru(smrm.decoder),
                                _dense(smrm.rotation_head), _dense(smrm.root_head))
-    linears = [m for m in skin.hidden if isinstance(m, torch.nn.Linear)]
-    skin_weights = MLP(tuple(_dense(m) for m in linears), _dense(skin.output))
-    weights = Weights(config, skr_weights, smrm_weights, skin_weights, dict(metadata or {}))
+    skin_weights = MLP(_linears(skin.hidden), _dense(skin.output))
+    refine_weights = None if refine is None else RefinerWeights(
+        _linears(refine.point), MLP(_linears(refine.hidden), _dense(refine.output)))
+    weights = Weights(config, skr_weights, smrm_weights, skin_weights, dict(metadata or {}),
+                      refine_weights)
     # Round-trip through the loader's checks so a wrong export fails here, not at load.
     return weights_from_arrays(flatten_weights(weights), source="exported weights")
 
 
-def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32):
-    """Write the three torch modules as one runtime weights file at ``path``."""
-    save_weights(path, runtime_weights(skr, smrm, skin, metadata), dtype=dtype)
+def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32, refine=None):
+    """Write the torch modules as one runtime weights file at ``path``."""
+    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine), dtype=dtype)
 
 
 
@@ -99,13 +108,23 @@ def _import_head(head, mlp):
     _set_dense(head.output, mlp.output)
 
 
-def import_weights(weights, skr, smrm, skin):
+def _import_linears(sequential, denses):
+    linears = [m for m in sequential if isinstance(m, torch.nn.Linear)]
+    for linear, dense in zip(linears, denses, strict=True):
+        _set_dense(linear, dense)
+
+
+def import_weights(weights, skr, smrm, skin, refine=None):
     """Load runtime Weights into the torch modules, in place (their config must match).
 
     Folded batch norms become ``nn.Identity``, so the imported SKR computes exactly what
     the file does and trains on as a network without batch norm.
     """
-    if smrm.config != weights.config:
+    # Without a refiner to load, weights from before it (no refiner) fit modules with one.
+    mine, theirs = smrm.config, weights.config
+    if refine is None:
+        mine, theirs = mine.without_refiner(), theirs.without_refiner()
+    if mine != theirs:
         raise ValueError(f"the weights' config {weights.config} is not the modules' "
                          f"{smrm.config}")
     for net, runtime in ((skr.input_transform, weights.skr.input_transform),
@@ -126,7 +145,9 @@ def import_weights(weights, skr, smrm, skin):
                     getattr(gru, f"{name}_l{i}").copy_(torch.from_numpy(array.copy()))
     _set_dense(smrm.rotation_head, weights.smrm.rotation_head)
     _set_dense(smrm.root_head, weights.smrm.root_head)
-    linears = [m for m in skin.hidden if isinstance(m, torch.nn.Linear)]
-    for linear, dense in zip(linears, weights.skin.hidden, strict=True):
-        _set_dense(linear, dense)
+    _import_linears(skin.hidden, weights.skin.hidden)
     _set_dense(skin.output, weights.skin.output)
+    if refine is not None:
+        _import_linears(refine.point, weights.refine.point)
+        _import_linears(refine.hidden, weights.refine.head.hidden)
+        _set_dense(refine.output, weights.refine.head.output)

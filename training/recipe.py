@@ -24,6 +24,16 @@ class SKRStage:
 
 
 @dataclasses.dataclass(frozen=True)
+class RefineStage:
+    steps: int = 3000
+    batch_size: int = 32
+    learning_rate: float = 1e-3
+    min_points: int = 1024       # each batch's clouds: a random subset of min_points to all
+    tpose_fraction: float = 0.125
+    eval_every: int = 250
+
+
+@dataclasses.dataclass(frozen=True)
 class SKINStage:
     steps: int = 10_000
     batch_size: int = 8
@@ -64,6 +74,7 @@ class Recipe:
     seed: int = 0
     model: ModelConfig = ModelConfig()
     skr: SKRStage = SKRStage()
+    refine: RefineStage = RefineStage()
     skin: SKINStage = SKINStage()
     smrm: SMRMStage = SMRMStage()
 

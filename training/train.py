@@ -1,6 +1,6 @@
-"""Train the three networks stage by stage, then export the runtime's weights file.
+"""Train the networks stage by stage, then export the runtime's weights file.
 
-    python -m training.train {skr,skin,smrm,all} --recipe cpu --data data --out runs/cpu
+    python -m training.train {skr,refine,skin,smrm,all} --recipe cpu --data data --out runs/cpu
                              [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
                              [--scratch STAGES] [--set KEY=VALUE ...]
 
@@ -33,10 +33,11 @@ from minretarget.weights import load_weights
 from training.export import export_weights, import_weights
 from training.kinematics import forward_kinematics
 from training.losses import discriminator_loss, skin_loss, skr_loss, smrm_losses
-from training.models import MotionDiscriminator, MotionRetargeter, SkeletonRegressor, SkinningField
+from training.models import (JointRefiner, MotionDiscriminator, MotionRetargeter,
+                             SkeletonRegressor, SkinningField)
 from training.recipe import load_recipe
 
-STAGES = ("skr", "skin", "smrm")
+STAGES = ("skr", "refine", "skin", "smrm")   # refine only where the config has a refiner
 VALIDATION_LIMIT = 2048   # validation samples per evaluation, to bound its time
 
 
@@ -202,18 +203,25 @@ def mean_over_batches(count, size, function):
 # ----------------------------------------------------------------------------- stages
 
 def initial_models(recipe, init=None, scratch=()):
-    """The three networks, freshly initialised or, with ``init`` (runtime Weights), loaded
-    from an exported file (its batch norms folded, see ``export.import_weights``) except the
-    stages named in ``scratch``, which stay fresh (an ablation of one stage)."""
+    """The networks, freshly initialised or, with ``init`` (runtime Weights), loaded from an
+    exported file (its batch norms folded, see ``export.import_weights``) except the stages
+    named in ``scratch`` and a refiner ``init`` does not have, which stay fresh."""
     def fresh():
-        return {"skr": SkeletonRegressor(recipe.model), "smrm": MotionRetargeter(recipe.model),
-                "skin": SkinningField(recipe.model)}
+        models = {"skr": SkeletonRegressor(recipe.model), "smrm": MotionRetargeter(recipe.model),
+                  "skin": SkinningField(recipe.model)}
+        if recipe.model.refines:
+            with torch.random.fork_rng(devices=[]):   # the other networks' draws stay as before
+                torch.manual_seed(recipe.seed + 3)
+                models["refine"] = JointRefiner(recipe.model)
+        return models
     models = fresh()
     if init is not None:
         with torch.random.fork_rng(devices=[]):     # leave later draws (the discriminator) alone
             loaded = fresh()
-        import_weights(init, loaded["skr"], loaded["smrm"], loaded["skin"])
-        models.update({name: loaded[name] for name in STAGES if name not in scratch})
+        if init.refine is None:                     # the refiner starts fresh
+            loaded.pop("refine", None)
+        import_weights(init, loaded["skr"], loaded["smrm"], loaded["skin"], loaded.get("refine"))
+        models.update({name: loaded[name] for name in loaded if name not in scratch})
     return models
 
 
@@ -245,6 +253,60 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
             def error(index):
                 predicted = model(data["points"][index])
                 return {name: float((predicted - data["joints"][index]).norm(dim=-1).mean())}
+            return mean_over_batches(min(VALIDATION_LIMIT, len(data["points"])), 64, error)
+        return {**errors(val, "val_mpjpe"), **errors(tpose_val, "val_tpose_mpjpe")}
+
+    return model, stage.run(train_step, evaluate, resume, stop_at)
+
+
+@torch.no_grad()
+def skr_predictions(skr, points, batch_size=128):
+    """SKR's joints (N, J, 3) of clouds (N, P, 3), in eval mode, batch by batch."""
+    skr.eval()
+    return torch.cat([skr(points[i:i + batch_size]) for i in range(0, len(points), batch_size)])
+
+
+def train_refine(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None,
+                 skr=None):
+    """The joint refiner on the trained SKR's joints (computed once, on whole clouds, as the
+    runtime sees them) of the SKR datasets: MSE to the true joints."""
+    stage_recipe = recipe.refine
+    skr = skr.to(device)
+    splits = {}
+    for name in ("skr_train", "skr_val", "skr_tpose_train", "skr_tpose_val"):
+        splits[name] = load_split(data_dir, name, device)
+        splits[name]["skr"] = skr_predictions(skr, splits[name]["points"])
+    train, val = splits["skr_train"], splits["skr_val"]
+    tpose_train, tpose_val = splits["skr_tpose_train"], splits["skr_tpose_val"]
+    model = (model or JointRefiner(recipe.model)).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
+    stage = Stage("refine", run_dir, {"refine": model}, {"refine": optimizer},
+                  stage_recipe.steps, stage_recipe.eval_every, recipe.seed + 3)
+    tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
+
+    def train_step(stage):
+        moving = stage.batch(len(train["points"]), stage_recipe.batch_size - tpose_count)
+        still = stage.batch(len(tpose_train["points"]), tpose_count)
+        points = torch.cat([train["points"][moving], tpose_train["points"][still]])
+        joints = torch.cat([train["joints"][moving], tpose_train["joints"][still]])
+        start = torch.cat([train["skr"][moving], tpose_train["skr"][still]])
+        # Clouds of every density the refiner should serve, from min_points to all.
+        count = int(torch.randint(stage_recipe.min_points, points.shape[1] + 1, (1,),
+                                  generator=stage.generator))
+        points = subsample_points(points, count, stage.generator)
+        loss = skr_loss(model(points, start), joints)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return {"loss": loss.item()}
+
+    def evaluate():
+        def errors(data, name):
+            def error(index):
+                refined = model(data["points"][index], data["skr"][index])
+                return {name: float((refined - data["joints"][index]).norm(dim=-1).mean()),
+                        f"{name}_skr": float((data["skr"][index] - data["joints"][index])
+                                             .norm(dim=-1).mean())}
             return mean_over_batches(min(VALIDATION_LIMIT, len(data["points"])), 64, error)
         return {**errors(val, "val_mpjpe"), **errors(tpose_val, "val_tpose_mpjpe")}
 
@@ -414,7 +476,7 @@ def stage_list(text):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", type=stage_list,
-                        help="skr, skin, smrm, a comma-separated list of them, or all")
+                        help="skr, refine, skin, smrm, a comma-separated list of them, or all")
     parser.add_argument("--recipe", required=True,
                         help="a recipe JSON file, or the name of one in training/recipes")
     parser.add_argument("--data", default="data", help="the directory of the built datasets")
@@ -441,10 +503,15 @@ def main(argv=None):
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "recipe.json").write_text(recipe.to_json())
     torch.manual_seed(recipe.seed)
-    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm}
+    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
+                "refine": lambda *a: train_refine(*a, skr=models["skr"])}
     init = load_weights(args.init) if args.init else None
     models, finished = initial_models(recipe, init, args.scratch), True
     for name in args.stage:
+        if name == "refine" and not recipe.model.refines:
+            if args.stage == ("refine",):
+                parser.error("the recipe's model has no refiner (model.refine_point_widths)")
+            continue
         start = time.perf_counter()
         models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
                                             args.resume, args.stop_at, models[name])
@@ -453,7 +520,8 @@ def main(argv=None):
     if finished and (args.stage == STAGES or init is not None):
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
-                       metadata=provenance(recipe, args.data, init))
+                       metadata=provenance(recipe, args.data, init),
+                       refine=models["refine"].cpu() if "refine" in models else None)
         print(f"exported {path}")
 
 

@@ -1,7 +1,8 @@
-"""The three networks of the torch reference, one module per pipeline stage."""
+"""The networks of the torch reference, one module per pipeline stage."""
+from .refine import JointRefiner
 from .skin import SkinningField
 from .skr import SkeletonRegressor
 from .smrm import MotionDiscriminator, MotionRetargeter, MotionState
 
 __all__ = ["SkeletonRegressor", "MotionRetargeter", "MotionDiscriminator", "MotionState",
-           "SkinningField"]
+           "SkinningField", "JointRefiner"]

@@ -7,6 +7,7 @@ from torch import nn
 
 from minretarget.config import ModelConfig
 from training.kinematics import linear_blend_skinning, skinning_transforms, forward_kinematics
+from .refine import JointRefiner
 from .skin import SkinningField
 from .skr import SkeletonRegressor
 from .smrm import MotionRetargeter
@@ -19,13 +20,14 @@ class ReferenceRetargeter(nn.Module):
         self.skr = SkeletonRegressor(config)
         self.smrm = MotionRetargeter(config)
         self.skin = SkinningField(config)
+        self.refine = JointRefiner(config) if config.refines else None
         self.target_points = self.tpose_joints = self.skin_weights = self.state = None
 
     @torch.no_grad()
     def set_target(self, points):
         """points (V, 3) target in T-pose, metres: computes its skeleton and skinning weights."""
         self.target_points = torch.as_tensor(points, dtype=torch.float32)
-        self.tpose_joints = self.skr(self.target_points[None])[0]             # (J, 3)
+        self.tpose_joints = self.skeleton(self.target_points[None])[0]        # (J, 3)
         self.skin_weights = self.skin(self.target_points[None], self.tpose_joints[None])[0]
         self.state = None
 
@@ -36,11 +38,16 @@ class ReferenceRetargeter(nn.Module):
         out, self.state = self.forward(torch.as_tensor(points, dtype=torch.float32), self.state)
         return out
 
+    def skeleton(self, points):
+        """points (B, P, 3) -> SKR's joints (B, J, 3), refined if the config has a refiner."""
+        joints = self.skr(points)
+        return joints if self.refine is None else self.refine(points, joints)
+
     def forward(self, points, state):
         """One frame as a pure function (what ``step`` runs, and what ONNX export traces):
         points (P, 3), the MotionState before it (None at a stream's start) -> (dict as
         ``step`` returns, the MotionState after it)."""
-        source_joints = self.skr(points[None])                           # (1, J, 3)
+        source_joints = self.skeleton(points[None])                      # (1, J, 3)
         rotations, root, joints, state = self.smrm(
             source_joints[:, None], self.tpose_joints[None], state)
         rotations, root, joints = rotations[0, 0], root[0, 0], joints[0, 0]
