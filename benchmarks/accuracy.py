@@ -6,14 +6,17 @@
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     model                the weights given (default: the shipped weights), as ``Retargeter``
-                         runs them by default: SKR's joints smoothed over time
-                         (minretarget.smoothing) before SMRM, feet held on their contacts
-                         after it (minretarget.contacts)
-    model, no foot lock  the same without the foot contacts
+                         runs them by default: SKR's joints moved by the joint refiner
+                         (minretarget.refine) and smoothed over time (minretarget.smoothing)
+                         before SMRM, feet held on their contacts after it
+                         (minretarget.contacts)
+    model, no refiner    the same without the joint refiner (source and target skeletons)
+    model, no foot lock  the same as the model without the foot contacts
     model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
                          averaged with those of each cloud's mirror image
     model, paper pipeline  the paper's: SKR once on the target T-pose (not mirror-averaged),
-                         SKR's source joints as they come, SMRM's rotations as they come
+                         SKR's source joints as they come (no refiner, no smoothing), SMRM's
+                         rotations as they come
     analytic             the model's (smoothed) source bones, each target bone rotated onto its
                          source bone (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
     oracle source        ground-truth source joints instead of SKR (not smoothed; foot lock on)
@@ -29,6 +32,7 @@ If DIR/test is absent, the benchmark data is built first (python -m training.dat
 well under 3 minutes.
 """
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -46,8 +50,8 @@ from minretarget.weights import load_weights
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
-ROWS = ("model", "model, no foot lock", "model, mirrored source", "model, paper pipeline",
-        "analytic", "oracle source", "oracle target", "oracle both")
+ROWS = ("model", "model, no refiner", "model, no foot lock", "model, mirrored source",
+        "model, paper pipeline", "analytic", "oracle source", "oracle target", "oracle both")
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 
@@ -92,6 +96,8 @@ def run_sequence(weights, sequence, wanted=ROWS):
     paper = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
                        refine=False)
     paper.set_target(points)                         # its own rig: SKR once on the T-pose
+    unrefined = Retargeter(weights, refine=False)
+    unrefined.set_target(points)                     # its own rig: SKR's, not refined
     no_lock, raw = Retargeter(weights, foot_lock=None), Retargeter(weights, smoothing=None)
     mirrored = Retargeter(weights, mirror_source=True)
     oracle_rig, oracle_rig_raw = Retargeter(weights), Retargeter(weights, smoothing=None)
@@ -112,10 +118,12 @@ def run_sequence(weights, sequence, wanted=ROWS):
     root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
     analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)
-    make = {"model": lambda: model, "model, no foot lock": lambda: stream(no_lock, raw_joints),
+    skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
+    make = {"model": lambda: model,
+            "model, no refiner": lambda: stream(unrefined, skr_alone()),
+            "model, no foot lock": lambda: stream(no_lock, raw_joints),
             "model, mirrored source": lambda: stacked(mirrored.run(sequence["source_points"])),
-            "model, paper pipeline": lambda: stream(paper,
-                                                    paper.skeleton(sequence["source_points"])),
+            "model, paper pipeline": lambda: stream(paper, skr_alone()),
             "analytic": lambda: analytic,
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
             "oracle target": lambda: stream(oracle_rig, raw_joints),

@@ -2,7 +2,8 @@
 
     python benchmarks/parity.py [--frames 60] [--points 2048] [--target 13718]
 
-The model: paper size, every parameter random (tests/reference_models.py).
+The model: the paper recipe's sizes (the paper's, and the joint refiner), every parameter
+random (tests/reference_models.py).
 The stream is a synthetic body-sized cloud drifting forward; the target a body-sized cloud.
 """
 import argparse
@@ -15,9 +16,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from reference_models import random_reference, random_stream  # noqa: E402
 
-from minretarget.config import ModelConfig  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
 from training.export import runtime_weights  # noqa: E402
+from training.recipe import load_recipe  # noqa: E402
 
 
 def main():
@@ -27,21 +28,22 @@ def main():
     parser.add_argument("--target", type=int, default=13718)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    model = random_reference(ModelConfig(), seed=0)
+    model = random_reference(load_recipe("paper").model, seed=0)
     # Synthetic Gaussian clouds, not bodies: the unit and T-pose warnings do not apply.
-    retargeter = Retargeter(runtime_weights(model.skr, model.smrm, model.skin), warn=False,
+    weights = runtime_weights(model.skr, model.smrm, model.skin, refine=model.refine)
+    retargeter = Retargeter(weights, warn=False,
                             smoothing=None, foot_lock=None, mirror_target=False)
     target, sources = random_stream(seed=0, frames=args.frames, target_points=args.target,
                                     min_points=args.points, max_points=args.points + 1)
     retargeter.set_target(target)
     model.set_target(torch.from_numpy(target))
-    errors = {"SKR target skeleton (m)": np.abs(retargeter.target.tpose_joints
+    errors = {"SKR + refiner target (m)": np.abs(retargeter.target.tpose_joints
                                                  - model.tpose_joints.numpy()).max(),
               "SKIN weights": np.abs(retargeter.target.skin_weights
                                      - model.skin_weights.numpy()).max()}
-    worst = {"SKR source joints (m)": 0.0, "SMRM rotations": 0.0, "SMRM root (m)": 0.0,
+    worst = {"SKR + refiner joints (m)": 0.0, "SMRM rotations": 0.0, "SMRM root (m)": 0.0,
              "FK joints (m)": 0.0, "LBS vertices (m)": 0.0}
-    keys = {"SKR source joints (m)": "source_joints", "SMRM rotations": "rotations",
+    keys = {"SKR + refiner joints (m)": "source_joints", "SMRM rotations": "rotations",
             "SMRM root (m)": "root", "FK joints (m)": "joints", "LBS vertices (m)": "vertices"}
     for points in sources:
         ours, theirs = retargeter.step(points), model.step(torch.from_numpy(points))

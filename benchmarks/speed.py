@@ -4,9 +4,10 @@
 
 One process, the same weights and inputs for every engine, batch 1 streaming (one frame at a
 time, as online use), with N threads everywhere (BLAS under numba, torch, onnxruntime):
-  * milliseconds per frame of each stage (SKR, SMRM step, FK, LBS) and end to end, at P source
-    points in {1024, 2048, 6890} and V target points in {6890, 13718} (--quick: the default
-    setting P = 2048, V = 13718 only), and their floating-point operations per frame;
+  * milliseconds per frame of each stage (SKR, joint refiner, SMRM step, FK, LBS) and end to
+    end, at P source points in {1024, 2048, 6890} and V target points in {6890, 13718}
+    (--quick: the default setting P = 2048, V = 13718 only), and their floating-point
+    operations per frame;
   * the torch reference (training/models/pipeline.py) in eager mode and, at the default
     setting, under torch.compile; onnxruntime on the same step exported to ONNX;
   * this machine's float32 matrix-multiply peak (the best of a few products), and SKR's
@@ -31,6 +32,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from minretarget.kinematics import forward_kinematics, skinning_transforms
+from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.skr import regress_joints
@@ -86,7 +88,19 @@ def stage_flops(config, points, vertices):
     return {"skr": 2 * (points * per_point + per_cloud),
             "smrm_step": 2 * (gru + h * (j * 4 + 3)),
             "fk": 2 * j * (27 + 9),                                  # R_parent R_local, R t
-            "lbs": 2 * vertices * j * 12 + 2 * vertices * 12}        # blend maps, apply
+            "lbs": 2 * vertices * j * 12 + 2 * vertices * 12,        # blend maps, apply
+            "refine": refine_flops(config, points)}
+
+
+def refine_flops(config, points):
+    """The joint refiner's FLOPs per frame: every joint's K nearest points through the point
+    layers, then the head once per joint (the neighbour search left out)."""
+    if not config.refines:
+        return 0
+    j, widths = config.num_joints, config.refine_point_widths
+    k = min(config.refine_neighbours, -(-points // -(-points // MAX_POINTS)))   # after thinning
+    head = _chain_macs(widths[-1] + 4 * j, list(config.refine_head_widths) + [3])
+    return 2 * j * (k * _chain_macs(3, widths) + head)
 
 
 def matmul_peak(threads, repeats=5):
@@ -120,6 +134,9 @@ def minretarget_stages(weights, source_points, target_points, repeats, workers):
     cycle = iter(range(10 ** 9))
     stages = {
         "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr, workers),
+        "refine": lambda: (refine_joints(frames[next(cycle) % 8], source_joints, weights.refine,
+                                         weights.config.refine_neighbours)
+                           if weights.refine is not None else None),
         "smrm_step": lambda: retarget_step(weights.smrm, state, source_joints,
                                            target.tpose_joints),
         "fk": lambda: forward_kinematics(rotations, root, target.tpose_joints),
@@ -139,7 +156,7 @@ def torch_reference(weights, target):
     from training.export import import_weights
     from training.models.pipeline import ReferenceRetargeter
     reference = ReferenceRetargeter(weights.config)
-    import_weights(weights, reference.skr, reference.smrm, reference.skin)
+    import_weights(weights, reference.skr, reference.smrm, reference.skin, reference.refine)
     reference.eval()
     reference.target_points = torch.from_numpy(target.points)
     reference.tpose_joints = torch.from_numpy(target.tpose_joints)
@@ -308,7 +325,7 @@ def main():
               f"{results['matmul_peak_gflops']:.1f} GFLOP/s")
         results["compile"] = compile_times(args.weights)
         print(f"numba: {json.dumps(results['compile'])}")
-        header = ("P", "V", "skr", "smrm_step", "fk", "lbs", "end_to_end", "fps",
+        header = ("P", "V", "skr", "refine", "smrm_step", "fk", "lbs", "end_to_end", "fps",
                   "torch", "compiled", "onnxrt")
         print(" ".join(f"{h:>10}" for h in header))
         for p, v in [DEFAULT_SETTING] if args.quick else SETTINGS:
@@ -321,7 +338,8 @@ def main():
                    "onnxruntime": onnx_times(reference, frames, args.threads, repeats)}
             results["settings"].append(row)
             print(" ".join(f"{x:>10}" for x in (p, v)) + " " + " ".join(
-                f"{ms[k]:>8.3f}ms" for k in ("skr", "smrm_step", "fk", "lbs", "end_to_end"))
+                f"{ms[k]:>8.3f}ms" for k in ("skr", "refine", "smrm_step", "fk", "lbs",
+                                             "end_to_end"))
                 + f" {row['fps_end_to_end']:>10.1f} {row['torch']['end_to_end']:>8.3f}ms "
                 + (f"{row['torch']['compiled_end_to_end']:>8.3f}ms"
                    if "compiled_end_to_end" in row["torch"] else f"{'-':>10}")

@@ -145,7 +145,8 @@ def test_target_skeleton_is_averaged_with_its_mirror_image(tiny_weights, tiny_st
     np.testing.assert_allclose(joints[list(MIRROR)] * flip, joints, atol=1e-5)
     for mirror_target, want in ((True, regress_joints_mirrored(target, tiny_weights.skr)),
                                 (False, plain)):
-        retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target)
+        retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target,
+                                refine=False)
         retargeter.set_target(target)
         np.testing.assert_allclose(retargeter.target.tpose_joints, want, atol=1e-6)
 
@@ -155,8 +156,8 @@ def test_mirror_source_feeds_smrm_the_mirror_averaged_skeleton(tiny_weights, tin
     retarget_sequence agrees with it."""
     from minretarget.skr import regress_joints_mirrored
     target, sources, _ = tiny_stream
-    mirrored, by_hand = (Retargeter(tiny_weights, warn=False, mirror_source=True),
-                         Retargeter(tiny_weights, warn=False))
+    mirrored, by_hand = (Retargeter(tiny_weights, warn=False, mirror_source=True, refine=False),
+                         Retargeter(tiny_weights, warn=False, refine=False))
     for retargeter in (mirrored, by_hand):
         retargeter.set_target(target)
     for points in sources[:8]:
@@ -167,3 +168,42 @@ def test_mirror_source_feeds_smrm_the_mirror_averaged_skeleton(tiny_weights, tin
     for t, points in enumerate(sources[:8]):
         want = by_hand.step_skeleton(regress_joints_mirrored(points[:200], tiny_weights.skr))
         np.testing.assert_allclose(offline.joints[t], want.joints, atol=1e-5)
+
+
+def test_skeletons_go_through_the_refiner_unless_refine_is_off(tiny_weights, tiny_stream):
+    """Target and source skeletons = refine_joints of SKR's (mirror-averaged for the target);
+    step = step_skeleton of ``skeleton``; refine=False, or weights without a refiner, leave
+    SKR's joints as they are."""
+    from minretarget.refine import refine_joints
+    from minretarget.skr import regress_joints, regress_joints_mirrored
+    target, sources, _ = tiny_stream
+    k = tiny_weights.config.refine_neighbours
+    refined, plain = Retargeter(tiny_weights, warn=False), Retargeter(tiny_weights, warn=False,
+                                                                       refine=False)
+    for retargeter in (refined, plain):
+        retargeter.set_target(target)
+    skr_target = regress_joints_mirrored(target, tiny_weights.skr)
+    np.testing.assert_allclose(refined.target.tpose_joints,
+                               refine_joints(target, skr_target, tiny_weights.refine, k),
+                               atol=1e-6)
+    np.testing.assert_allclose(plain.target.tpose_joints, skr_target, atol=1e-6)
+    assert np.abs(refined.target.tpose_joints - skr_target).max() > 1e-3
+    by_hand = Retargeter(tiny_weights, warn=False)
+    by_hand.set_target(target)
+    for points in sources[:5]:
+        skeleton = refine_joints(points, regress_joints(points, tiny_weights.skr),
+                                 tiny_weights.refine, k)
+        np.testing.assert_allclose(refined.skeleton(points), skeleton, atol=1e-6)
+        np.testing.assert_array_equal(refined.step(points).vertices,
+                                      by_hand.step_skeleton(refined.skeleton(points)).vertices)
+        np.testing.assert_allclose(plain.skeleton(points), regress_joints(points,
+                                                                          tiny_weights.skr))
+    batch = np.stack([s[:150] for s in sources[:3]])
+    np.testing.assert_allclose(refined.skeleton(batch),
+                               np.stack([refined.skeleton(c) for c in batch]), atol=1e-6)
+    without = tiny_weights._replace(config=tiny_weights.config.without_refiner(), refine=None)
+    bare = Retargeter(without, warn=False)
+    np.testing.assert_allclose(bare.skeleton(sources[0]),
+                               regress_joints(sources[0], tiny_weights.skr))
+    with pytest.raises(ValueError, match="source points"):
+        refined.skeleton(sources[0][:10])

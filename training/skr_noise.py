@@ -1,4 +1,5 @@
-"""Measure the errors SKR makes on moving validation bodies, to train SMRM to absorb them.
+"""Measure the errors SKR (and the joint refiner) make on moving validation bodies, to train
+SMRM to absorb them.
 
     python -m training.skr_noise [--weights FILE] [--cmu DIR] [--sequences N] [--frames T]
 
@@ -8,7 +9,8 @@ its input is SKR's estimate, whose error has two parts that a recurrent network 
 differently: a part that stays nearly constant along a clip (the body's shape misjudged, a
 bone too long) and a part that changes every frame (jitter from the fresh point sample). This
 plays validation trials (held-out subjects) on validation bodies, samples clouds as the test
-benchmark does, runs the runtime's SKR and splits the residual r_t (T, J, 3) of each sequence
+benchmark does, runs the runtime's SKR (then the joint refiner, if the weights have one:
+the skeleton SMRM gets) and splits the residual r_t (T, J, 3) of each sequence
 into its mean over the sequence (the bias) and the rest. It prints the standard deviation of
 each (metres, per coordinate), overall and per joint, and the lag-1 autocorrelation of the
 rest (0: white jitter).
@@ -20,7 +22,7 @@ import json
 import numpy as np
 
 from minretarget.conventions import JOINT_NAMES
-from minretarget.skr import regress_joints
+from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
 from training.data.bodies import body_from_seed, pose_body, sampled_body_seeds
 from training.data.datasets import cmu_motions
@@ -28,7 +30,9 @@ from training.data.sampling import sample_point_clouds
 
 
 def residuals(weights, motions, bodies, actor_hip_height, frames, points, rng):
-    """SKR's error on each motion, played on a body in turn: list of (T, J, 3), metres."""
+    """The source skeleton's error on each motion, played on a body in turn: list of
+    (T, J, 3), metres."""
+    skeleton = Retargeter(weights, warn=False).skeleton
     out = []
     for index, motion in enumerate(motions):
         body = bodies[index % len(bodies)]
@@ -36,7 +40,7 @@ def residuals(weights, motions, bodies, actor_hip_height, frames, points, rng):
         root = (motion.root[:frames] * (body.hip_height / actor_hip_height)).astype(np.float32)
         vertices, joints = pose_body(body, rotations, root)
         clouds = sample_point_clouds(vertices, body.faces, points, rng)
-        out.append(regress_joints(clouds, weights.skr) - joints)
+        out.append(skeleton(clouds) - joints)
     return out
 
 
