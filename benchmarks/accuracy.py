@@ -243,7 +243,7 @@ def main(argv=None):
     sections.append(feet_table(feet))
     text = "\n\n".join(sections)
     print(text)
-    print(f"\n{total_frames} frames in {seconds:.0f} s; model (all stages, online) "
+    print(f"\n{total_frames} frames in {seconds:.0f} s; model (all stages; SKR and refiner batched over the frames) "
           f"{1e3 * model_seconds / total_frames:.1f} ms per frame")
     if args.markdown:
         Path(args.markdown).write_text(text + "\n")

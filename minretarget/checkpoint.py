@@ -134,7 +134,10 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             "points": points, "seed": seed,
             "smoothing": None if smoothing is None else list(smoothing),
             "foot_lock": None if foot_lock is None else list(foot_lock),
-            "mirror_source": bool(mirror_source), "refine": bool(refine)}
+            "mirror_source": bool(mirror_source),
+            # Recorded only when it changes the result, so runs from before the refiner and
+            # runs with weights that have none still match their checkpoints.
+            **({"refine": True} if refine and weights.refine is not None else {})}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):

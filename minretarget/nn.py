@@ -1,4 +1,4 @@
-"""Layers shared by the three networks: weight containers and their numba kernels.
+"""Layers shared by the networks: weight containers and their numba kernels.
 
 Weights are NamedTuples of float32 arrays (numba passes them into kernels as they are);
 a linear layer maps rows: ``x (N, in) @ weight (in, out) + bias (out,)``.

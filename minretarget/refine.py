@@ -13,13 +13,15 @@ neighbourhood:
         -> MLP -> offset * scale; joint j + offset
 Clouds of more than ``MAX_POINTS`` points are thinned to about that many by a stride in
 their order first: the K nearest points then cover about the neighbourhood the refiner was
-trained on (clouds of 1,024 to 2,048 points).
+trained on (clouds of 1,024 to 2,048 points). So above MAX_POINTS the result depends a little
+on the points' order (which points the stride keeps); at or below it, not at all.
 """
 from typing import NamedTuple
 
 import numpy as np
 
 from ._jit import kernel
+from .conventions import NUM_JOINTS
 from .nn import MLP, dense, mlp
 from .validation import as_float32_array
 
@@ -44,22 +46,26 @@ def refine_joints(points, joints, weights, neighbours):
         joints like ``joints``, float32, metres.
     """
     points = as_float32_array(points, "points", (..., None, 3))
-    joints = as_float32_array(joints, "joints", points.shape[:-2] + (None, 3))
-    if points.ndim not in (2, 3):
-        raise ValueError(f"points must have shape (P, 3) or (B, P, 3), got {points.shape}")
+    if points.ndim not in (2, 3) or points.shape[-2] == 0:
+        raise ValueError(f"points must have shape (P, 3) or (B, P, 3) with P >= 1, got "
+                         f"{points.shape}")
+    joints = as_float32_array(joints, "joints", points.shape[:-2] + (NUM_JOINTS, 3))
+    if int(neighbours) < 1:
+        raise ValueError(f"neighbours must be at least 1, got {neighbours}")
     stride = -(-points.shape[-2] // MAX_POINTS)                 # ceil: at most MAX_POINTS
     clouds = points[..., ::stride, :] if points.ndim == 3 else points[None, ::stride]
     skeletons = joints if joints.ndim == 3 else joints[None]
     k = min(int(neighbours), clouds.shape[1])
-    refined = np.stack([_refine_kernel(np.ascontiguousarray(cloud), skeleton, weights, k)
-                        for cloud, skeleton in zip(clouds, skeletons)])
+    refined = np.empty_like(skeletons)
+    for b in range(len(clouds)):
+        refined[b] = _refine_kernel(np.ascontiguousarray(clouds[b]), skeletons[b], weights, k)
     return refined if points.ndim == 3 else refined[0]
 
 
 @kernel
 def _nearest(points, centre, k):
-    """Indices of the k points nearest ``centre`` (3,), in no particular order (the max-pool
-    does not care). A max-heap of the k nearest so far: most points fail one comparison with
+    """Indices of the k <= P points nearest ``centre`` (3,), in no particular order (the
+    max-pool does not care). A max-heap of the k nearest so far: most points fail one comparison with
     its top, so this is about one pass over the points, where a full sort was ten times
     slower."""
     heap_distance = np.full(k, np.inf, dtype=np.float32)

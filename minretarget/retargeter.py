@@ -14,7 +14,7 @@ from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .refine import refine_joints
 from .skin import linear_blend_skinning, skinning_weights
-from .skr import regress_joints, regress_joints_mirrored
+from .skr import mirror_averaged, regress_joints
 from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
 from .validation import as_float32_array, as_point_cloud, check_body
@@ -51,7 +51,7 @@ class Retargeter:
         stays put; the legs are bent to hold it), or None for SMRM's rotations as they come
         (the paper's pipeline and the torch reference).
         ``mirror_target``: find the target's skeleton with SKR on its T-pose and on the
-        mirror image of it, averaged (``skr.regress_joints_mirrored``), or False for SKR once
+        mirror image of it, averaged (``skr.mirror_averaged``), or False for SKR once
         (the paper's pipeline and the torch reference).
         ``mirror_source``: the same for every source frame: SKR's time doubles (with
         ``workers=2`` the cloud and its mirror image run side by side), for 3.6 mm of MPJPE
@@ -163,20 +163,22 @@ class Retargeter:
             (J, 3) or (T, J, 3) float32 joints, metres; ``step_skeleton`` takes them.
         """
         points = as_float32_array(points, "source points", (..., None, 3))
-        if points.ndim not in (2, 3) or points.shape[-2] < MIN_POINTS:
-            raise ValueError(f"source points must have shape (P, 3) or (T, P, 3) with P >= "
-                             f"{MIN_POINTS}, got {points.shape}")
+        if points.ndim not in (2, 3) or points.shape[-2] < MIN_POINTS or not len(points):
+            raise ValueError(f"source points must have shape (P, 3) or (T, P, 3) with T >= 1 "
+                             f"and P >= {MIN_POINTS}, got {points.shape}")
         return self._skr(points, self.mirror_source)
 
     def _skr(self, points, mirrored):
-        """SKR's joints of (P, 3) or (B, P, 3) clouds, averaged with the mirror image's if
-        ``mirrored``, then refined (if the weights have a refiner and ``refine`` is on)."""
-        regress = regress_joints_mirrored if mirrored else regress_joints
-        joints = regress(points, self.weights.skr, self.workers)
-        if self.refine and self.weights.refine is not None:
-            joints = refine_joints(points, joints, self.weights.refine,
-                                   self.weights.config.refine_neighbours)
-        return joints
+        """The skeletons of (P, 3) or (B, P, 3) clouds: SKR, then the refiner (if the weights
+        have one and ``refine`` is on); with ``mirrored``, that on each cloud and on its
+        mirror image, averaged (``skr.mirror_averaged``)."""
+        def skeleton(clouds):
+            joints = regress_joints(clouds, self.weights.skr, self.workers)
+            if self.refine and self.weights.refine is not None:
+                joints = refine_joints(clouds, joints, self.weights.refine,
+                                       self.weights.config.refine_neighbours)
+            return joints
+        return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
 
     def _retarget_step(self, source_joints):
         """SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""

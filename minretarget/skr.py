@@ -61,16 +61,19 @@ def regress_joints(points, weights, workers=1):
     return np.stack(joints) if points.ndim == 3 else joints[0]
 
 
-def regress_joints_mirrored(points, weights, workers=1):
-    """Joints of the body in each cloud, SKR's left/right bias averaged out.
+def mirror_averaged(skeleton, points):
+    """A skeleton finder run on each cloud and on its mirror image (x -> -x: another plausible
+    body and pose), the second skeleton mirrored back with left and right joints swapped and
+    averaged with the first: what the finder gets wrong on one side more than the other
+    cancels. The runtime's skeleton (SKR, then the joint refiner) on validation bodies
+    (held-out), mean joint error: T-poses 1.34 -> 1.19 cm, poses 2.76 -> 2.68 cm (SKR alone:
+    2.64 -> 2.48 and 4.51 -> 4.38). Twice the finder's time.
 
-    SKR runs on the cloud and on its mirror image (x -> -x: another plausible body and
-    pose); the second skeleton, mirrored back with left and right joints swapped, is
-    averaged with the first. On the validation T-poses (held-out bodies) the mean joint
-    error fell from 2.64 to 2.48 cm, on the validation poses from 4.35 to 4.19 cm. Twice
-    SKR's time.
-
-    Args, Returns: as ``regress_joints``.
+    Args:
+        skeleton: clouds (B, P, 3) -> joints (B, J, 3), e.g. SKR; called once, on 2B clouds.
+        points: (P, 3) or (B, P, 3) float32 clouds, metres.
+    Returns:
+        (J, 3) or (B, J, 3) float32 joints, metres.
     """
     points = as_float32_array(points, "points", (..., None, 3))
     if points.ndim not in (2, 3):
@@ -78,7 +81,7 @@ def regress_joints_mirrored(points, weights, workers=1):
     mirror = np.ones(3, np.float32)
     mirror[LEFT_AXIS] = -1                                      # flip the body's left axis
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
-    both = regress_joints(np.concatenate([batch, batch * mirror]), weights, workers)
+    both = skeleton(np.concatenate([batch, batch * mirror]))
     plain, mirrored = both[:len(batch)], both[len(batch):]              # (B, J, 3) each
     joints = ((plain + mirrored[:, list(MIRROR)] * mirror) / 2).astype(np.float32)
     return joints if points.ndim == 3 else joints[0]

@@ -62,6 +62,13 @@ def test_refiner_batches_and_is_translation_equivariant_and_order_invariant(tiny
                                batch[0], atol=1e-5)
     with pytest.raises(ValueError, match="joints"):
         refine_joints(points, joints[0], net, k)
+    with pytest.raises(ValueError, match="joints"):
+        refine_joints(points[0], joints[0, :5], net, k)
+    with pytest.raises(ValueError, match="neighbours"):
+        refine_joints(points[0], joints[0], net, 0)
+    with pytest.raises(ValueError, match="P >= 1"):
+        refine_joints(points[0, :0], joints[0], net, k)
+    assert refine_joints(points[:0], joints[:0], net, k).shape == (0, NUM_JOINTS, 3)
 
 
 def test_skr_is_translation_equivariant_and_order_invariant(tiny_weights):

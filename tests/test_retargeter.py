@@ -125,67 +125,71 @@ def test_a_given_rig_replaces_skr_and_skin(tiny_weights, tiny_stream):
 
 
 def test_target_skeleton_is_averaged_with_its_mirror_image(tiny_weights, tiny_stream):
-    """regress_joints_mirrored = the mean of SKR on the cloud and SKR on its mirror image mapped
-    back (by hand); on a mirror-symmetric cloud the result is itself mirror-symmetric; the
-    Retargeter uses it unless mirror_target=False."""
+    """mirror_averaged = the mean of a skeleton finder on the cloud and on its mirror image
+    mapped back (by hand); on a mirror-symmetric cloud the result is itself mirror-symmetric;
+    the Retargeter uses it on SKR + refiner unless mirror_target=False."""
     from minretarget.conventions import JOINT_NAMES, MIRROR
-    from minretarget.skr import regress_joints, regress_joints_mirrored
+    from minretarget.refine import refine_joints
+    from minretarget.skr import mirror_averaged, regress_joints
     assert all(JOINT_NAMES[MIRROR[j]] == name.replace("left", "right") if "left" in name else
                JOINT_NAMES[MIRROR[j]] == name.replace("right", "left") if "right" in name else
                MIRROR[j] == j for j, name in enumerate(JOINT_NAMES))
+    k = tiny_weights.config.refine_neighbours
+
+    def skeleton(clouds):
+        return refine_joints(clouds, regress_joints(clouds, tiny_weights.skr),
+                             tiny_weights.refine, k)
     target = tiny_stream[0]
     flip = np.array([-1, 1, 1], np.float32)
-    plain = regress_joints(target, tiny_weights.skr)
-    mirrored = regress_joints(target * flip, tiny_weights.skr)
+    plain = skeleton(target[None])[0]
+    mirrored = skeleton((target * flip)[None])[0]
     swapped = np.array([mirrored[MIRROR[j]] for j in range(len(MIRROR))]) * flip
-    np.testing.assert_allclose(regress_joints_mirrored(target, tiny_weights.skr),
-                               (plain + swapped) / 2, atol=1e-6)
+    np.testing.assert_allclose(mirror_averaged(skeleton, target), (plain + swapped) / 2,
+                               atol=1e-6)
     symmetric = np.concatenate([target, target * flip])
-    joints = regress_joints_mirrored(symmetric, tiny_weights.skr)
+    joints = mirror_averaged(skeleton, symmetric)
     np.testing.assert_allclose(joints[list(MIRROR)] * flip, joints, atol=1e-5)
-    for mirror_target, want in ((True, regress_joints_mirrored(target, tiny_weights.skr)),
-                                (False, plain)):
-        retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target,
-                                refine=False)
+    for mirror_target, want in ((True, mirror_averaged(skeleton, target)), (False, plain)):
+        retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target)
         retargeter.set_target(target)
         np.testing.assert_allclose(retargeter.target.tpose_joints, want, atol=1e-6)
 
 
 def test_mirror_source_feeds_smrm_the_mirror_averaged_skeleton(tiny_weights, tiny_stream):
-    """step with mirror_source = step_skeleton of regress_joints_mirrored, frame by frame, and
-    retarget_sequence agrees with it."""
-    from minretarget.skr import regress_joints_mirrored
+    """step with mirror_source = step_skeleton of mirror_averaged SKR, frame by frame, and
+    retarget_sequence agrees with it (refiner off: the previous test covers it)."""
+    from minretarget.skr import mirror_averaged, regress_joints
     target, sources, _ = tiny_stream
     mirrored, by_hand = (Retargeter(tiny_weights, warn=False, mirror_source=True, refine=False),
                          Retargeter(tiny_weights, warn=False, refine=False))
+
+    def skr(clouds):
+        return regress_joints(clouds, tiny_weights.skr)
     for retargeter in (mirrored, by_hand):
         retargeter.set_target(target)
     for points in sources[:8]:
-        want = by_hand.step_skeleton(regress_joints_mirrored(points, tiny_weights.skr))
+        want = by_hand.step_skeleton(mirror_averaged(skr, points))
         np.testing.assert_array_equal(mirrored.step(points).vertices, want.vertices)
     offline = mirrored.retarget_sequence(np.stack([s[:200] for s in sources[:8]]))
     by_hand.reset()
     for t, points in enumerate(sources[:8]):
-        want = by_hand.step_skeleton(regress_joints_mirrored(points[:200], tiny_weights.skr))
+        want = by_hand.step_skeleton(mirror_averaged(skr, points[:200]))
         np.testing.assert_allclose(offline.joints[t], want.joints, atol=1e-5)
 
 
 def test_skeletons_go_through_the_refiner_unless_refine_is_off(tiny_weights, tiny_stream):
-    """Target and source skeletons = refine_joints of SKR's (mirror-averaged for the target);
-    step = step_skeleton of ``skeleton``; refine=False, or weights without a refiner, leave
-    SKR's joints as they are."""
+    """Source skeletons = refine_joints of SKR's; step = step_skeleton of ``skeleton``;
+    refine=False, or weights without a refiner, leave SKR's joints as they are (the target's
+    too)."""
     from minretarget.refine import refine_joints
-    from minretarget.skr import regress_joints, regress_joints_mirrored
+    from minretarget.skr import mirror_averaged, regress_joints
     target, sources, _ = tiny_stream
     k = tiny_weights.config.refine_neighbours
     refined, plain = Retargeter(tiny_weights, warn=False), Retargeter(tiny_weights, warn=False,
                                                                        refine=False)
     for retargeter in (refined, plain):
         retargeter.set_target(target)
-    skr_target = regress_joints_mirrored(target, tiny_weights.skr)
-    np.testing.assert_allclose(refined.target.tpose_joints,
-                               refine_joints(target, skr_target, tiny_weights.refine, k),
-                               atol=1e-6)
+    skr_target = mirror_averaged(lambda c: regress_joints(c, tiny_weights.skr), target)
     np.testing.assert_allclose(plain.target.tpose_joints, skr_target, atol=1e-6)
     assert np.abs(refined.target.tpose_joints - skr_target).max() > 1e-3
     by_hand = Retargeter(tiny_weights, warn=False)

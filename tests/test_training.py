@@ -149,6 +149,22 @@ def test_refiner_trains_on_weights_from_before_it(run, tmp_path):
                                       "val_tpose_mpjpe_skr"]
 
 
+def test_an_untrained_refiner_is_never_exported_nor_trained_on_a_random_skr(run, tmp_path):
+    """smrm --init <file without a refiner> exports no refiner (it would be random); refine
+    alone without a trained SKR is refused."""
+    whole = load_weights(run / "run" / "weights.npz")
+    save_weights(tmp_path / "old.npz", whole._replace(config=whole.config.without_refiner(),
+                                                      refine=None))
+    main(["smrm", "--init", str(tmp_path / "old.npz"), "--recipe", str(run / "tiny.json"),
+          "--data", str(run), "--out", str(tmp_path / "tuned"), "--threads", "1"])
+    tuned = load_weights(tmp_path / "tuned" / "weights.npz")
+    assert tuned.refine is None and not tuned.config.refines
+    with pytest.raises(SystemExit):
+        main(["refine", "--recipe", str(run / "tiny.json"), "--data", str(run),
+              "--out", str(tmp_path / "alone"), "--threads", "1"])
+    assert not (tmp_path / "alone" / "refine.pt").exists()
+
+
 def test_scratch_retrains_a_stage_as_from_random_initialisation(run, tmp_path):
     """--init W --scratch smrm: SKR and SKIN are W's, SMRM is what training from scratch
     gives (the ``all`` run's SMRM, same recipe and seeds)."""

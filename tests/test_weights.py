@@ -73,3 +73,19 @@ def test_header_keys_must_be_scalars(arrays):
     arrays["format_version"] = np.array([FORMAT_VERSION])
     with pytest.raises(ValueError, match="'format_version' must be a scalar"):
         weights_from_arrays(arrays)
+
+
+def test_files_from_before_the_refiner_load_without_one(tiny_weights):
+    """A config JSON without the refine_* keys (files written before the refiner) loads with
+    ``refine`` None; a refiner's arrays without its config are refused."""
+    import json
+    arrays = flatten_weights(tiny_weights)
+    old = {k: v for k, v in arrays.items() if not k.startswith("refine.")}
+    config = json.loads(str(old["config"]))
+    for key in ("refine_point_widths", "refine_head_widths", "refine_neighbours"):
+        del config[key]
+    old["config"] = np.array(json.dumps(config))
+    weights = weights_from_arrays(old)
+    assert weights.refine is None and not weights.config.refines
+    with pytest.raises(ValueError, match="unexpected.*refine"):
+        weights_from_arrays({**old, "refine.point.0.weight": arrays["refine.point.0.weight"]})

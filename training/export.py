@@ -60,7 +60,7 @@ def _gru(gru):
 def runtime_weights(skr, smrm, skin, metadata=None, refine=None):
     """The torch modules -> minretarget Weights (checked against their config); ``refine``
     the JointRefiner, if the config has one."""
-    config = smrm.config
+    config = smrm.config if refine is not None else smrm.config.without_refiner()
 
     def transform(net):
         return PointNetWeights(_point_layers(net.points), _head(net.head))

@@ -1,4 +1,4 @@
-"""Losses of the three stages. Lengths in metres; batch letters as in minretarget.conventions.
+"""Losses of the stages. Lengths in metres; batch letters as in minretarget.conventions.
 
 SMRM is trained without retargeting ground truth: a source clip A is retargeted onto another
 body's skeleton B and back, and the losses judge only what can be known without knowing the
@@ -11,7 +11,7 @@ from training.models.smrm import leg_length, motion_features
 
 
 def skr_loss(predicted, joints):
-    """(B, J, 3) predicted and true joints -> mean squared error, m^2."""
+    """(B, J, 3) predicted and true joints -> mean squared error, m^2 (SKR and the refiner)."""
     return F.mse_loss(predicted, joints)
 
 

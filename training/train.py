@@ -506,22 +506,33 @@ def main(argv=None):
     trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
                 "refine": lambda *a: train_refine(*a, skr=models["skr"])}
     init = load_weights(args.init) if args.init else None
+    # The recipe's own stages: refine only if its model has a refiner.
+    own = tuple(n for n in STAGES if n != "refine" or recipe.model.refines)
+    stages = tuple(n for n in args.stage if n in own)
+    if not stages:
+        parser.error("the recipe's model has no refiner (model.refine_point_widths)")
+    if "refine" in stages and "skr" not in stages and init is None:
+        parser.error("the refiner learns a trained SKR's errors: train skr with it "
+                     "(skr,refine) or start from a trained SKR (--init WEIGHTS)")
+    if "skr" in stages and "refine" not in stages and init is not None and init.refine is not None:
+        print("warning: SKR is retrained but not the refiner, which learned the old SKR's "
+              "errors; train skr,refine to retrain both")
     models, finished = initial_models(recipe, init, args.scratch), True
-    for name in args.stage:
-        if name == "refine" and not recipe.model.refines:
-            if args.stage == ("refine",):
-                parser.error("the recipe's model has no refiner (model.refine_point_widths)")
-            continue
+    for name in stages:
         start = time.perf_counter()
         models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
                                             args.resume, args.stop_at, models[name])
         print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
         finished = finished and done
-    if finished and (args.stage == STAGES or init is not None):
+    if finished and (stages == own or init is not None):
+        # A refiner neither trained here nor loaded from --init is random: not exported.
+        trained = "refine" in stages or (init is not None and init.refine is not None
+                                         and "refine" not in args.scratch)
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
                        metadata=provenance(recipe, args.data, init),
-                       refine=models["refine"].cpu() if "refine" in models else None)
+                       refine=models["refine"].cpu() if trained and recipe.model.refines
+                       else None)
         print(f"exported {path}")
 
 

@@ -26,7 +26,6 @@ class JointRefiner(nn.Module):
         if not config.refines:
             raise ValueError("the config has no refiner (refine_point_widths is empty)")
         self.neighbours = config.refine_neighbours
-        self.num_joints = config.num_joints
         self.point = _linear_relu_chain(3, config.refine_point_widths)
         width = config.refine_point_widths[-1] + 4 * config.num_joints
         self.hidden = _linear_relu_chain(width, config.refine_head_widths)
@@ -38,7 +37,8 @@ class JointRefiner(nn.Module):
         batch, count, _ = points.shape
         joint_count = joints.shape[1]
         k = min(self.neighbours, count)
-        # Exact differences (not the matrix-product shortcut), so near-ties rank as the runtime.
+        # Exact differences (not the matrix-product shortcut): near-ties rank as closely as
+        # they can to the runtime's.
         distances = torch.cdist(joints, points, compute_mode="donot_use_mm_for_euclid_dist")
         nearest = distances.topk(k, dim=2, largest=False).indices             # (B, J, K)
         neighbourhood = torch.gather(points[:, None].expand(batch, joint_count, count, 3), 2,
