@@ -57,17 +57,21 @@ def _gru(gru):
                  for i in range(gru.num_layers))
 
 
+def skr_runtime_weights(skr):
+    """SkeletonRegressor (eval-mode batch norm folded) -> the runtime's SKRWeights."""
+    def transform(net):
+        return PointNetWeights(_point_layers(net.points), _head(net.head))
+
+    return SKRWeights(
+        transform(skr.input_transform), transform(skr.feature_transform),
+        PointNetWeights(_point_layers(skr.first) + _point_layers(skr.rest), _head(skr.head)))
+
+
 def runtime_weights(skr, smrm, skin, metadata=None, refine=None):
     """The torch modules -> minretarget Weights (checked against their config); ``refine``
     the JointRefiner, if the config has one."""
     config = smrm.config if refine is not None else smrm.config.without_refiner()
-
-    def transform(net):
-        return PointNetWeights(_point_layers(net.points), _head(net.head))
-
-    skr_weights = SKRWeights(
-        transform(skr.input_transform), transform(skr.feature_transform),
-        PointNetWeights(_point_layers(skr.first) + _point_layers(skr.rest), _head(skr.head)))
+    skr_weights = skr_runtime_weights(skr)
     smrm_weights = SMRMWeights(_gru(smrm.encoder), _gru(smrm.decoder),
                                _dense(smrm.rotation_head), _dense(smrm.root_head))
     skin_weights = MLP(_linears(skin.hidden), _dense(skin.output))

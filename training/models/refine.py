@@ -37,9 +37,9 @@ class JointRefiner(nn.Module):
         batch, count, _ = points.shape
         joint_count = joints.shape[1]
         k = min(self.neighbours, count)
-        # Exact differences (not the matrix-product shortcut): near-ties rank as closely as
-        # they can to the runtime's.
-        distances = torch.cdist(joints, points, compute_mode="donot_use_mm_for_euclid_dist")
+        # Squared distances from the differences, as the runtime computes them (not cdist's
+        # matrix-product shortcut, and ONNX has no cdist), so near-ties rank alike.
+        distances = ((joints[:, :, None] - points[:, None]) ** 2).sum(dim=-1)  # (B, J, P)
         nearest = distances.topk(k, dim=2, largest=False).indices             # (B, J, K)
         neighbourhood = torch.gather(points[:, None].expand(batch, joint_count, count, 3), 2,
                                      nearest[..., None].expand(batch, joint_count, k, 3))
