@@ -203,6 +203,22 @@ def mean_over_batches(count, size, function):
 
 # ----------------------------------------------------------------------------- stages
 
+def posed_and_tpose_batch(stage, posed, tpose, size, tpose_count, keys):
+    """One batch of SKR-dataset samples: ``size - tpose_count`` drawn from ``posed`` and
+    ``tpose_count`` from ``tpose`` (the T-pose files), ``keys`` concatenated in that order."""
+    moving = stage.batch(len(posed["points"]), size - tpose_count)
+    still = stage.batch(len(tpose["points"]), tpose_count)
+    return {key: torch.cat([posed[key][moving], tpose[key][still]]) for key in keys}
+
+
+def joint_errors(data, name, predict):
+    """{name: mean joint error (metres)} of ``predict(data, index) -> (B, J, 3)`` against
+    ``data["joints"]``, over at most VALIDATION_LIMIT samples."""
+    def error(index):
+        return {name: float((predict(data, index) - data["joints"][index]).norm(dim=-1).mean())}
+    return mean_over_batches(min(VALIDATION_LIMIT, len(data["points"])), 64, error)
+
+
 def initial_models(recipe, init=None, scratch=()):
     """The networks, freshly initialised or, with ``init`` (runtime Weights), loaded from an
     exported file (its batch norms folded, see ``export.import_weights``) except the stages
@@ -238,24 +254,20 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
     tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
 
     def train_step(stage):
-        moving = stage.batch(len(train["points"]), stage_recipe.batch_size - tpose_count)
-        still = stage.batch(len(tpose_train["points"]), tpose_count)
-        points = torch.cat([train["points"][moving], tpose_train["points"][still]])
-        joints = torch.cat([train["joints"][moving], tpose_train["joints"][still]])
-        points = subsample_points(points, stage_recipe.points, stage.generator)
-        loss = skr_loss(model(points), joints)
+        batch = posed_and_tpose_batch(stage, train, tpose_train, stage_recipe.batch_size,
+                                      tpose_count, ("points", "joints"))
+        points = subsample_points(batch["points"], stage_recipe.points, stage.generator)
+        loss = skr_loss(model(points), batch["joints"])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         return {"loss": loss.item()}
 
     def evaluate():
-        def errors(data, name):
-            def error(index):
-                predicted = model(data["points"][index])
-                return {name: float((predicted - data["joints"][index]).norm(dim=-1).mean())}
-            return mean_over_batches(min(VALIDATION_LIMIT, len(data["points"])), 64, error)
-        return {**errors(val, "val_mpjpe"), **errors(tpose_val, "val_tpose_mpjpe")}
+        def predict(data, index):
+            return model(data["points"][index])
+        return {**joint_errors(val, "val_mpjpe", predict),
+                **joint_errors(tpose_val, "val_tpose_mpjpe", predict)}
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
@@ -290,30 +302,28 @@ def train_refine(recipe, data_dir, run_dir, device, resume, stop_at=None, model=
     tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
 
     def train_step(stage):
-        moving = stage.batch(len(train["points"]), stage_recipe.batch_size - tpose_count)
-        still = stage.batch(len(tpose_train["points"]), tpose_count)
-        points = torch.cat([train["points"][moving], tpose_train["points"][still]])
-        joints = torch.cat([train["joints"][moving], tpose_train["joints"][still]])
-        start = torch.cat([train["skr"][moving], tpose_train["skr"][still]])
+        batch = posed_and_tpose_batch(stage, train, tpose_train, stage_recipe.batch_size,
+                                      tpose_count, ("points", "joints", "skr"))
         # Clouds of every density the refiner should serve, from min_points to all.
-        count = int(torch.randint(stage_recipe.min_points, points.shape[1] + 1, (1,),
+        count = int(torch.randint(stage_recipe.min_points, batch["points"].shape[1] + 1, (1,),
                                   generator=stage.generator))
-        points = subsample_points(points, count, stage.generator)
-        loss = skr_loss(model(points, start), joints)
+        points = subsample_points(batch["points"], count, stage.generator)
+        loss = skr_loss(model(points, batch["skr"]), batch["joints"])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         return {"loss": loss.item()}
 
     def evaluate():
-        def errors(data, name):
-            def error(index):
-                refined = model(data["points"][index], data["skr"][index])
-                return {name: float((refined - data["joints"][index]).norm(dim=-1).mean()),
-                        f"{name}_skr": float((data["skr"][index] - data["joints"][index])
-                                             .norm(dim=-1).mean())}
-            return mean_over_batches(min(VALIDATION_LIMIT, len(data["points"])), 64, error)
-        return {**errors(val, "val_mpjpe"), **errors(tpose_val, "val_tpose_mpjpe")}
+        def refined(data, index):
+            return model(data["points"][index], data["skr"][index])
+
+        def skr_alone(data, index):
+            return data["skr"][index]
+        return {**joint_errors(val, "val_mpjpe", refined),
+                **joint_errors(val, "val_mpjpe_skr", skr_alone),
+                **joint_errors(tpose_val, "val_tpose_mpjpe", refined),
+                **joint_errors(tpose_val, "val_tpose_mpjpe_skr", skr_alone)}
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
