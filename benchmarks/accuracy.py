@@ -112,9 +112,9 @@ def run_sequence(weights, sequence, wanted=ROWS):
     skr_joints = np.stack([f.source_joints for f in frames])                  # smoothed
 
     # Analytic: the same source skeletons and target rig, rotations from bone alignment, and
-    # the root scaled like SMRM's (by the longest source leg length so far).
+    # the root scaled like SMRM's (by the mean source leg length so far).
     target = learned.target
-    legs = np.maximum.accumulate(leg_length(skr_joints))
+    legs = np.cumsum(leg_length(skr_joints)) / np.arange(1, len(skr_joints) + 1)
     root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
     analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)

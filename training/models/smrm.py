@@ -9,11 +9,11 @@ Per frame t, with source joints x_t (J, 3) and the target's T-pose skeleton s (J
     4. decoder GRU (layers x H) over [encoder output, s - s[0]] (the T-pose relative to its root)
     5. heads: (J, 4) unit quaternions, the root's relative to H_t, and a root offset d_t (3)
     6. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, with k_t = leg length of s /
-       the longest source leg length seen so far (the Mixamo-style scaling of the source root,
-       corrected by the network; see minretarget.smrm for why the longest)
+       the mean source leg length over the frames seen so far (the Mixamo-style scaling of the
+       source root, corrected by the network; see minretarget.smrm for why the mean)
     7. FK of the quaternions on s with root r_t gives the retargeted joints (J, 3)
-The recurrent state (both GRUs' hidden states, the previous source root, the longest leg
-length) is explicit, so a stream can be fed one frame at a time and gives the same result as
+The recurrent state (both GRUs' hidden states, the previous source root, the mean leg length
+and the frame count) is explicit, so a stream can be fed one frame at a time and gives the same result as
 the whole sequence at once.
 """
 from typing import NamedTuple
@@ -29,7 +29,7 @@ class MotionState(NamedTuple):
     encoder_hidden: torch.Tensor   # (layers, B, H)
     decoder_hidden: torch.Tensor   # (layers, B, H)
     previous_root: torch.Tensor    # (B, 3) source root of the last frame seen, metres
-    source_leg_length: torch.Tensor  # (B,) the longest source leg length seen, metres
+    source_leg_length: torch.Tensor  # (B,) mean source leg length over the frames, metres
     frames_seen: torch.Tensor      # (B,) frames seen so far
 
 
@@ -127,17 +127,17 @@ class MotionRetargeter(nn.Module):
         rotations = torch.cat([turn_quaternions(rotations[:, :, :1], sin_cos[:, :, None]),
                                rotations[:, :, 1:]], dim=2)
 
-        # The longest source leg length so far, then the scaled source root plus the offset.
+        # The mean source leg length so far, then the scaled source root plus the offset.
         legs = leg_length(source_joints)                                # (B, T)
-        longest = torch.maximum(legs.cummax(dim=1).values if t > 1 else legs,
-                                state.source_leg_length[:, None])
         frames = state.frames_seen[:, None] + torch.arange(1, t + 1, device=legs.device)
-        scale = leg_length(target_tpose)[:, None] / longest.clamp_min(1e-6)  # (B, T)
+        mean = ((state.frames_seen * state.source_leg_length)[:, None]
+                + legs.cumsum(dim=1)) / frames                            # (B, T)
+        scale = leg_length(target_tpose)[:, None] / mean.clamp_min(1e-6)   # (B, T)
         offset = turn_vectors(self.root_head(decoded)[:, :, None, :], sin_cos)[:, :, 0, :]
         root = scale[..., None] * source_joints[:, :, 0, :] + offset
         joints, _ = forward_kinematics(rotations, root, target_tpose[:, None])
         new_state = MotionState(encoder_hidden, decoder_hidden, source_joints[:, -1, 0, :],
-                                longest[:, -1], frames[:, -1].to(legs.dtype))
+                                mean[:, -1], frames[:, -1].to(legs.dtype))
         return rotations, root, joints, new_state
 
 
