@@ -1,7 +1,7 @@
 """Accuracy of the runtime on the test benchmark (DESIGN.md, "Accuracy protocol").
 
-    python benchmarks/accuracy.py [--quick] [--weights FILE] [--data DIR] [--cmu DIR]
-                                  [--json OUT.json] [--markdown OUT.md]
+    python benchmarks/accuracy.py [--quick | --validation] [--rows ROW ...] [--weights FILE]
+                                  [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
 
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
@@ -29,7 +29,8 @@ horizontal speed of the toes over the steps where the ground truth's toes touch 
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
 If DIR/test is absent, the benchmark data is built first (python -m training.data build).
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
-well under 3 minutes.
+well under 3 minutes. --validation: the same rows on validation trials (held-out training
+subjects and bodies), for choosing between weights or settings without the test split.
 """
 import argparse
 import functools
@@ -161,7 +162,7 @@ def frame_weighted(results, keys=None):
     chosen = [r for r in results if keys is None or keys(r)]
     total = sum(r["frames"] for r in chosen)
     return {row: {m: sum(r["metrics"][row][m] * r["frames"] for r in chosen) / total
-                  for m in METRIC_NAMES} for row in ROWS}
+                  for m in METRIC_NAMES} for row in chosen[0]["metrics"]}
 
 
 def markdown_table(rows, title):
@@ -202,27 +203,39 @@ def main(argv=None):
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data, to build DIR")
+    parser.add_argument("--validation", action="store_true",
+                        help="score validation trials instead (training.data.datasets."
+                             "validation_sequences: 12 trials, 2,880 frames), to choose "
+                             "between weights without looking at the test split")
+    parser.add_argument("--rows", nargs="+", choices=ROWS, default=list(ROWS), metavar="ROW",
+                        help="the rows to compute, each quoted (default: all; model always)")
     parser.add_argument("--json", help="write the results as JSON here")
     parser.add_argument("--markdown", help="write the tables as markdown here")
     args = parser.parse_args(argv)
+    wanted = ["model"] + [row for row in args.rows if row != "model"]
     test_dir = Path(args.data) / "test"
-    if not test_dir.is_dir():
+    if not args.validation and not test_dir.is_dir():
         print(f"{test_dir} is absent: building the data first", flush=True)
         subprocess.run([sys.executable, "-m", "training.data", "build", "--cmu", args.cmu,
                         "--out", args.data], check=True)
     weights = load_weights(args.weights)
-    paths, frames = select_sequences(sorted(test_dir.glob("*.npz")), args.quick)
+    if args.validation:
+        from training.data.datasets import validation_sequences
+        loaders = [build for _, build in validation_sequences(args.cmu)]
+    else:
+        paths, frames = select_sequences(sorted(test_dir.glob("*.npz")), args.quick)
+        loaders = [functools.partial(load_sequence, path, frames) for path in paths]
     started, results, model_seconds = time.perf_counter(), [], 0.0
-    for index, path in enumerate(paths):
-        sequence = load_sequence(path, frames)
-        rows, seconds = run_sequence(weights, sequence)
+    for index, load in enumerate(loaders):
+        sequence = load()
+        rows, seconds = run_sequence(weights, sequence, wanted)
         model_seconds += seconds
         results.append({"sequence": str(sequence["name"]), "category": str(sequence["category"]),
                         "target_body": str(sequence["target_body"]),
                         "frames": len(sequence["source_points"]),
                         "metrics": sequence_metrics(rows, sequence),
                         "feet": feet_on_contacts(rows, sequence)})
-        print(f"[{index + 1}/{len(paths)}] {results[-1]['sequence']} "
+        print(f"[{index + 1}/{len(loaders)}] {results[-1]['sequence']} "
               f"({results[-1]['frames']} frames): model MPJPE "
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
 
@@ -233,7 +246,8 @@ def main(argv=None):
     by_category = {c: frame_weighted(results, lambda r, c=c: r["category"] == c)
                    for c in sorted({r["category"] for r in results})}
     seconds = time.perf_counter() - started
-    sections = [markdown_table(overall, f"All test sequences ({len(results)} sequences, "
+    split = "validation" if args.validation else "test"
+    sections = [markdown_table(overall, f"All {split} sequences ({len(results)} sequences, "
                                         f"{total_frames} frames; paper: its own test set)")]
     sections += [markdown_table(rows, f"Target body {body}") for body, rows in by_body.items()]
     sections += [markdown_table(rows, f"Category {c}") for c, rows in by_category.items()]
@@ -253,7 +267,7 @@ def main(argv=None):
              "by_target_body": by_body, "by_category": by_category,
              "feet_on_truth_contacts": feet,
              "per_sequence": results, "weights": args.weights or "shipped default",
-             "weights_metadata": weights.metadata, "quick": args.quick,
+             "weights_metadata": weights.metadata, "quick": args.quick, "split": split,
              "seconds": round(seconds, 1)}, indent=2))
 
 

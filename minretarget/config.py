@@ -29,12 +29,21 @@ class ModelConfig:
     refine_head_widths: tuple = ()
     refine_neighbours: int = 96
     num_joints: int = NUM_JOINTS
+    # Not in the paper: SMRM predicts a correction to the analytic retargeting
+    # (minretarget.analytic, each target bone turned onto its source bone) instead of the whole
+    # rotation; each joint's predicted quaternion is applied after the analytic one, in the
+    # joint's own frame. False: the paper's SMRM (the root's rotation relative to the heading).
+    # Last, so that positional configs from before it keep their meaning.
+    smrm_analytic_prior: bool = False
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
         for field in ("skr_point_widths", "skr_head_widths", "skin_widths",
                       "refine_point_widths", "refine_head_widths"):
             object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
+        if not isinstance(self.smrm_analytic_prior, bool):
+            raise ValueError(f"smrm_analytic_prior must be true or false, got "
+                             f"{self.smrm_analytic_prior!r}")
         if len(self.skr_point_widths) != 3 or len(self.skr_head_widths) != 2:
             raise ValueError("skr_point_widths needs 3 widths and skr_head_widths 2, got "
                              f"{self.skr_point_widths} and {self.skr_head_widths}")

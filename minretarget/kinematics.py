@@ -95,6 +95,42 @@ def matrix_to_quaternion(matrices):
     return q.astype(np.float32)
 
 
+@kernel
+def _matrix_to_quaternion_one(m, q):
+    """``matrix_to_quaternion`` of one (3, 3) rotation into q (4,), in a kernel."""
+    squares = (1 + m[0, 0] + m[1, 1] + m[2, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2],
+               1 - m[0, 0] + m[1, 1] - m[2, 2], 1 - m[0, 0] - m[1, 1] + m[2, 2])
+    best = 0
+    for k in range(1, 4):
+        if squares[k] > squares[best]:
+            best = k
+    if best == 0:
+        q[0], q[1], q[2], q[3] = (squares[0], m[2, 1] - m[1, 2], m[0, 2] - m[2, 0],
+                                  m[1, 0] - m[0, 1])
+    elif best == 1:
+        q[0], q[1], q[2], q[3] = (m[2, 1] - m[1, 2], squares[1], m[1, 0] + m[0, 1],
+                                  m[0, 2] + m[2, 0])
+    elif best == 2:
+        q[0], q[1], q[2], q[3] = (m[0, 2] - m[2, 0], m[1, 0] + m[0, 1], squares[2],
+                                  m[2, 1] + m[1, 2])
+    else:
+        q[0], q[1], q[2], q[3] = (m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[2, 1] + m[1, 2],
+                                  squares[3])
+    norm = np.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    sign = -1.0 if q[0] < 0 else 1.0
+    for k in range(4):
+        q[k] = sign * q[k] / norm
+
+
+@kernel
+def _quaternion_multiply_one(a, b, out):
+    """``quaternion_multiply`` of two (4,) quaternions into out (4,), in a kernel."""
+    out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3]
+    out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2]
+    out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1]
+    out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0]
+
+
 def quaternion_multiply(a, b):
     """Hamilton product a * b of (..., 4) quaternions (w, x, y, z): rotate by b, then by a."""
     a = np.asarray(a, dtype=np.float32)

@@ -6,7 +6,10 @@ Per frame, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 
        the network sees and predicts everything in this body-aligned frame
     2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0])
     3. encoder GRU over the features; decoder GRU over [encoder output, s - s[0]]
-    4. heads: (J, 4) unit quaternions (the root's relative to H_t) and a root offset d_t (3, m)
+    4. heads: (J, 4) unit quaternions (the root's relative to H_t) and a root offset d_t (3, m);
+       with ``smrm_analytic_prior`` weights each quaternion is instead a correction applied
+       after the analytic rotation of x_t onto s (``minretarget.analytic``), in the joint's
+       frame, and step 5's heading turn is not needed (the analytic root rotation has it)
     5. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, where k_t = leg length of s /
        the mean source leg length over the frames seen so far (the source root scaled to the
        target's size, then corrected). The mean: with the joint refiner (minretarget.refine)
@@ -21,7 +24,9 @@ from typing import NamedTuple
 import numpy as np
 
 from ._jit import kernel
+from .analytic import _analytic_frame
 from .contacts import check_feet
+from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
 from .nn import Dense, dense, sigmoid
 from .smoothing import _parameters, _smooth_kernel, check_smoothing
@@ -90,7 +95,8 @@ def check_state(weights, state):
     return MotionState(encoder, decoder, previous, velocity, leg, frames, *check_feet(state))
 
 
-def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
+def retarget_step(weights, state, source_joints, target_tpose, smoothing=None,
+                  analytic_prior=False):
     """Retarget one frame.
 
     Args:
@@ -100,6 +106,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
         target_tpose: (J, 3) float32 target T-pose joints, metres.
         smoothing: ``smoothing.Smoothing`` to smooth the source joints over time first, or
             None to use them as they are (what the torch reference does).
+        analytic_prior: the weights' ``config.smrm_analytic_prior``: whether the network's
+            rotations are corrections to ``minretarget.analytic``'s (step 4).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new MotionState (its ``previous_joints``: the source joints SMRM saw).
@@ -115,7 +123,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
     decoder_hidden = state.decoder_hidden.copy()
     rotations, root, leg = _retarget_step_kernel(
         weights, seen, target_tpose, encoder_hidden, decoder_hidden,
-        state.previous_joints[0], float(state.source_leg_length), state.frames_seen)
+        state.previous_joints[0], float(state.source_leg_length), state.frames_seen,
+        bool(analytic_prior))
     new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
                                previous_joints=seen, joint_velocity=velocity,
                                source_leg_length=leg, frames_seen=state.frames_seen + 1)
@@ -164,7 +173,8 @@ def _gru_step(x, hidden, layers):
 
 @kernel
 def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
-                          decoder_hidden, previous_root, source_leg_length, frames_seen):
+                          decoder_hidden, previous_root, source_leg_length, frames_seen,
+                          analytic_prior):
     """One frame, the module docstring's steps 1-5; updates the hidden states in place.
     Returns rotations (J, 4), root (3,) and the mean source leg length with this frame's
     (float: a running mean over ``frames_seen`` frames before it)."""
@@ -192,12 +202,17 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
         norm = np.sqrt(q[k, 0] ** 2 + q[k, 1] ** 2 + q[k, 2] ** 2 + q[k, 3] ** 2)
         q[k] /= max(norm, np.float32(1e-8))
     offset = dense(decoded, weights.root_head, False)[0]                # (3,)
-    # 5. root rotation turned by the heading (half angle: stable at a half turn) ...
-    half = np.arctan2(sin, cos) / np.float32(2.0)
-    hw, hy = np.cos(half), np.sin(half)
-    w, x, y, z = q[0, 0], q[0, 1], q[0, 2], q[0, 3]
-    q[0, 0], q[0, 1], q[0, 2], q[0, 3] = hw * w - hy * y, hw * x + hy * z, hw * y + hy * w, \
-        hw * z - hy * x
+    if analytic_prior:   # 4'. each a correction after the analytic rotation, in its frame
+        prior = np.empty((j, 4), dtype=np.float32)
+        _analytic_frame(source_joints, target_tpose, prior, np.empty((j, 3, 3)))
+        for k in range(j):
+            _quaternion_multiply_one(prior[k], q[k].copy(), q[k])
+    else:                # 5. root rotation turned by the heading (half angle: stable at pi)
+        half = np.arctan2(sin, cos) / np.float32(2.0)
+        hw, hy = np.cos(half), np.sin(half)
+        w, x, y, z = q[0, 0], q[0, 1], q[0, 2], q[0, 3]
+        q[0, 0], q[0, 1], q[0, 2], q[0, 3] = hw * w - hy * y, hw * x + hy * z, \
+            hw * y + hy * w, hw * z - hy * x
     # ... and the root: the source root scaled to the target's size, plus the turned offset
     source_leg_length += (np.float64(_leg_length(source_joints)) - source_leg_length) / (
         frames_seen + 1)

@@ -1,11 +1,13 @@
 """The runtime against the torch reference: per stage and end to end, tiny and paper sizes."""
+import dataclasses
+
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")  # the runtime-only suite (test_golden.py) runs without it
 
 from make_golden import reference_outputs  # noqa: E402
-from reference_models import random_reference, random_stream  # noqa: E402
+from reference_models import TINY_CONFIG, random_reference, random_stream  # noqa: E402
 
 from minretarget.config import ModelConfig  # noqa: E402
 from minretarget.conventions import NUM_JOINTS  # noqa: E402
@@ -42,6 +44,25 @@ def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp
         np.testing.assert_allclose(got, want[key], atol=TOLERANCE, err_msg=key)
     rotations = np.stack([frame.rotations for frame in frames])
     np.testing.assert_allclose(rotations, want["rotations"], atol=1e-5)
+
+
+def test_smrm_with_the_analytic_prior_matches_torch(tmp_path):
+    """SMRM's corrections applied after the analytic rotations: the runtime's kernel (and its
+    analytic kernel) against training.analytic and the torch model, end to end."""
+    model = random_reference(dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True), 3)
+    export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine)
+    retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None, foot_lock=None,
+                                         mirror_target=False)
+    assert retargeter.weights.config.smrm_analytic_prior
+    target, sources = random_stream(seed=4, frames=40)
+    want = reference_outputs(model, target, sources)
+    retargeter.set_target(target)
+    frames = list(retargeter.run(sources))
+    rotations = np.stack([frame.rotations for frame in frames])
+    np.testing.assert_allclose(np.abs((rotations * want["rotations"]).sum(-1)), 1.0, atol=1e-5)
+    for key in ("joints", "vertices"):
+        got = np.stack([getattr(frame, key) for frame in frames])
+        np.testing.assert_allclose(got, want[key], atol=TOLERANCE, err_msg=key)
 
 
 def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights, tiny_stream):

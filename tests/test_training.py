@@ -12,7 +12,8 @@ from minretarget.weights import flatten_weights, load_weights, save_weights  # n
 from training import kinematics  # noqa: E402
 from training.losses import rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
-from training.train import main, retarget_ground_truth, source_noise  # noqa: E402
+from training.analytic import analytic_rotations  # noqa: E402
+from training.train import initial_models, main, retarget_ground_truth, source_noise  # noqa: E402
 
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
@@ -127,6 +128,25 @@ def test_init_trains_listed_stages_and_keeps_the_others(run, tmp_path):
                if k.startswith("smrm."))
     metadata = json.loads(str(after["metadata"]))
     assert metadata["init"]["recipe"]["name"] == "tiny"
+
+
+def test_analytic_prior_fine_tunes_from_weights_without_it(run, tmp_path):
+    """--init from a file without the analytic prior: SMRM starts as exactly the analytic
+    retargeting (its rotation head reset), trains, and exports weights that say so."""
+    start = load_weights(run / "run" / "weights.npz")
+    assert not start.config.smrm_analytic_prior
+    recipe = load_recipe(run / "tiny.json", ["model.smrm_analytic_prior=true"])
+    smrm = initial_models(recipe, start)["smrm"]
+    joints = torch.from_numpy(np.load(run / "smrm_val.npz")["joints"][:2])      # (2, 30, J, 3)
+    target = torch.from_numpy(np.load(run / "smrm_val.npz")["bodies_tpose_joints"][:2])
+    with torch.no_grad():
+        rotations, _, _, _ = smrm(joints, target)
+    want = analytic_rotations(joints, target[:, None])
+    assert (rotation_distance(rotations, want) < 1e-6).all()
+    main(["smrm", "--init", str(run / "run" / "weights.npz"), "--recipe", str(run / "tiny.json"),
+          "--set", "model.smrm_analytic_prior=true", "--data", str(run),
+          "--out", str(tmp_path / "prior"), "--threads", "1"])
+    assert load_weights(tmp_path / "prior" / "weights.npz").config.smrm_analytic_prior
 
 
 def test_refiner_trains_on_weights_from_before_it(run, tmp_path):

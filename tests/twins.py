@@ -217,3 +217,43 @@ def _hinge_turn(hip, knee, ankle, hinge, reach):
     best = min(candidates, key=lambda angle: abs(angle) + (0 if flexion + angle >= 0
                                                            else np.pi))
     return _turn(hinge, best)
+
+
+def _unit(v):
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _rotation_between(a, b):
+    """Unit a, b (3,) -> 3 x 3 smallest rotation taking a to b (Rodrigues about a x b)."""
+    axis = np.cross(a, b)
+    angle = np.arctan2(np.linalg.norm(axis), a @ b)
+    if np.linalg.norm(axis) < 1e-9:               # parallel, or opposite: any perpendicular
+        if a @ b > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+    return _turn(axis, angle)
+
+
+def analytic_rotations(source, tpose):
+    """(T, J, 3) source joints, (J, 3) target T-pose -> (T, J, 3, 3) local rotation matrices:
+    each bone turned onto its source bone, Kabsch over several children, leaves keep their
+    parent's rotation (minretarget.analytic)."""
+    source, tpose = np.asarray(source, np.float64), np.asarray(tpose, np.float64)
+    children = [[c for c in range(len(PARENTS)) if PARENTS[c] == j] for j in range(len(PARENTS))]
+    out = np.empty(source.shape[:2] + (3, 3))
+    for t, frame in enumerate(source):
+        world = []
+        for j, kids in enumerate(children):
+            parent = world[PARENTS[j]] if j else np.eye(3)
+            rest = [_unit(parent @ (tpose[c] - tpose[j])) for c in kids]
+            posed = [_unit(frame[c] - frame[j]) for c in kids]
+            if len(kids) == 1:
+                turn = _rotation_between(rest[0], posed[0])
+            elif kids:
+                u, _, vt = np.linalg.svd(sum(np.outer(b, a) for a, b in zip(rest, posed)))
+                turn = u @ np.diag([1, 1, np.sign(np.linalg.det(u @ vt))]) @ vt
+            else:
+                turn = np.eye(3)
+            world.append(turn @ parent)
+            out[t, j] = world[j] if j == 0 else world[PARENTS[j]].T @ world[j]
+    return out

@@ -5,6 +5,7 @@ weight is transposed to the runtime's (in, out) layout. ``import_weights`` goes 
 so training can start from an exported file (the shipped weights, say): its batch norms come
 back folded, as ``nn.Identity``.
 """
+import dataclasses
 import numpy as np
 import torch
 
@@ -124,8 +125,11 @@ def import_weights(weights, skr, smrm, skin, refine=None):
     Folded batch norms become ``nn.Identity``, so the imported SKR computes exactly what
     the file does and trains on as a network without batch norm.
     """
-    # Without a refiner to load, weights from before it (no refiner) fit modules with one.
-    mine, theirs = smrm.config, weights.config
+    # Without a refiner to load, weights from before it (no refiner) fit modules with one;
+    # the analytic prior changes what SMRM's rotation head means, not the shapes (see
+    # train.initial_models, which then resets that head).
+    mine, theirs = (dataclasses.replace(c, smrm_analytic_prior=False)
+                    for c in (smrm.config, weights.config))
     if refine is None:
         mine, theirs = mine.without_refiner(), theirs.without_refiner()
     if mine != theirs:

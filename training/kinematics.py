@@ -18,9 +18,39 @@ def quaternion_to_matrix(quaternions):
     return torch.stack(rows, -1).reshape(quaternions.shape[:-1] + (3, 3))
 
 
+def quaternion_multiply(a, b):
+    """Hamilton product a * b of (..., 4) quaternions (w, x, y, z): rotate by b, then by a."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
 def normalize_quaternions(quaternions, eps=1e-8):
     """(..., 4) -> (..., 4) unit quaternions."""
     return quaternions / quaternions.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def matrix_to_quaternion(m):
+    """(..., 3, 3) rotations -> (..., 4) unit quaternions (w, x, y, z), w >= 0; the branch of
+    the largest squared component (minretarget.kinematics.matrix_to_quaternion's twin)."""
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    squares = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22,
+                           1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    candidates = torch.stack([
+        torch.stack([squares[..., 0], m[..., 2, 1] - m[..., 1, 2],
+                     m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+        torch.stack([m[..., 2, 1] - m[..., 1, 2], squares[..., 1],
+                     m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]], -1),
+        torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1],
+                     squares[..., 2], m[..., 2, 1] + m[..., 1, 2]], -1),
+        torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
+                     m[..., 2, 1] + m[..., 1, 2], squares[..., 3]], -1)], -2)
+    best = squares.argmax(-1)[..., None, None].expand(squares.shape[:-1] + (1, 4))
+    q = normalize_quaternions(torch.gather(candidates, -2, best)[..., 0, :])
+    return torch.where(q[..., :1] < 0, -q, q)
 
 
 def forward_kinematics(rotations, root, tpose_joints):

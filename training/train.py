@@ -238,6 +238,8 @@ def initial_models(recipe, init=None, scratch=()):
         if init.refine is None:                     # the refiner starts fresh
             loaded.pop("refine", None)
         import_weights(init, loaded["skr"], loaded["smrm"], loaded["skin"], loaded.get("refine"))
+        if recipe.model.smrm_analytic_prior and not init.config.smrm_analytic_prior:
+            loaded["smrm"].reset_rotation_head()   # its rotations become corrections: start at 0
         models.update({name: loaded[name] for name in loaded if name not in scratch})
     return models
 
@@ -443,17 +445,24 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
     # Validation: each clip onto the next validation body, against the Mixamo ground truth.
     val_bodies = val["bodies_tpose_joints"]
 
+    # And with the training noise on the source (fixed draws), as the runtime's SKR gives it.
+    val_count = min(VALIDATION_LIMIT, len(val["joints"]))
+    val_noise = source_noise(val["joints"][:val_count].shape, stage_recipe,
+                             torch.Generator().manual_seed(recipe.seed)).to(device)
+
     def evaluate():
         def errors(index):
             target = val_bodies[(val["body"][index].long() + 1) % len(val_bodies)]
-            _, _, joints, _ = model(val["joints"][index], target)
             truth = retarget_ground_truth(val["rotations"][index], val["root"][index],
                                           val["tpose_joints"][index], target)
+            _, _, joints, _ = model(val["joints"][index], target)
+            _, _, noisy, _ = model(val["joints"][index] + val_noise[index], target)
             local = lambda x: x - x[:, :, :1]  # noqa: E731
             return {"val_mpjpe": float((joints - truth).norm(dim=-1).mean()),
                     "val_mpjpe_root_relative": float(
-                        (local(joints) - local(truth)).norm(dim=-1).mean())}
-        return mean_over_batches(min(VALIDATION_LIMIT, len(val["joints"])), 128, errors)
+                        (local(joints) - local(truth)).norm(dim=-1).mean()),
+                    "val_mpjpe_noisy_source": float((noisy - truth).norm(dim=-1).mean())}
+        return mean_over_batches(val_count, 128, errors)
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 

@@ -13,7 +13,6 @@ the joints (metres). The choice: the least PA-MPJPE among the settings whose toe
 faster on the truth's contacts than the truth's own do.
 """
 import argparse
-import dataclasses
 import hashlib
 import itertools
 import sys
@@ -21,16 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from minretarget.conventions import FPS
 from minretarget.contacts import FootLock, plant_feet
 from minretarget.kinematics import forward_kinematics
 from minretarget.metrics import acceleration_error, foot_contacts, foot_speeds, mpjpe, pa_mpjpe
 from minretarget.retargeter import Retargeter
 from minretarget.smrm import initial_state
 from minretarget.weights import flatten_weights, load_weights
-from training.data.bodies import body_from_seed, sampled_body_seeds
-from training.data.cmu import cmu_tpose_joints, list_trials, load_motion
-from training.data.datasets import VALIDATION_SUBJECTS, benchmark_sequence
+from training.data.datasets import validation_sequences
 
 TRIALS, MAX_FRAMES, CONTACT_HEIGHT = 12, 240, 0.03
 GRID = {"plant_speed": (1.0, 2.0), "lift_speed": (2.0,), "speed_cutoff": (12.0,),
@@ -43,19 +39,11 @@ def validation_streams(weights, cmu_dir, cache_dir):
     (T, J, 3))]: built and retargeted once, then read from ``cache_dir``/<weights' hash>."""
     cache_dir = Path(cache_dir) / weights_digest(weights)[:16]
     cache_dir.mkdir(parents=True, exist_ok=True)
-    trials = [t for t in list_trials(cmu_dir) if t.subject in VALIDATION_SUBJECTS]
-    actor_hip_height = float(cmu_tpose_joints(trials[0].path)[0, 1])
-    bodies = [body_from_seed(seed) for seed in sampled_body_seeds(15, "val")]
     streams = []
-    for k, index in enumerate(np.random.default_rng(0).permutation(len(trials))[:TRIALS]):
-        trial = trials[index]
+    for trial, build in validation_sequences(cmu_dir, TRIALS, MAX_FRAMES):
         path = cache_dir / f"{trial.name}.npz"
         if not path.is_file():
-            motion = load_motion(trial.path, fps=FPS)
-            motion = dataclasses.replace(motion, rotations=motion.rotations[:MAX_FRAMES],
-                                         root=motion.root[:MAX_FRAMES])
-            sequence = benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
-                                          2048, actor_hip_height, np.random.default_rng([0, k]))
+            sequence = build()
             retargeter = Retargeter(weights, warn=False, foot_lock=None)
             retargeter.set_target(sequence["target_tpose_points"])
             frames = retargeter.retarget_sequence(sequence["source_points"])

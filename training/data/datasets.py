@@ -44,6 +44,7 @@ ground, then turned by a random heading about +Y (root rotation and root transla
 shifted by a random horizontal translation.
 """
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -309,6 +310,27 @@ def benchmark_sequence(motion, source, target, points, actor_hip_height, rng, pr
                category=np.array(motion.category), source_body=np.array(source.name),
                target_body=np.array(target.name), fps=np.array(FPS))
     return out
+
+
+def validation_sequences(cmu_dir, trials=12, max_frames=240, points=2048):
+    """Benchmark sequences from validation motion, never the test split: ``trials`` trials of
+    the held-out training subjects (VALIDATION_SUBJECTS), at most ``max_frames`` frames each,
+    on held-out validation bodies (source and target differ), sampled as the test benchmark
+    is. Yields (trial, build): ``build()`` makes the sequence (seconds of work, so a caller
+    with a cache can skip it); the same every time (fixed seeds)."""
+    chosen = [t for t in list_trials(cmu_dir) if t.subject in VALIDATION_SUBJECTS]
+    actor_hip_height = float(cmu_tpose_joints(chosen[0].path)[0, 1])
+    bodies = [body_from_seed(seed) for seed in sampled_body_seeds(15, "val")]
+
+    def build(trial, k):
+        motion = load_motion(trial.path, fps=FPS)
+        motion = dataclasses.replace(motion, rotations=motion.rotations[:max_frames],
+                                     root=motion.root[:max_frames])
+        return benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
+                                  points, actor_hip_height, np.random.default_rng([0, k]))
+
+    for k, index in enumerate(np.random.default_rng(0).permutation(len(chosen))[:trials]):
+        yield chosen[index], functools.partial(build, chosen[index], k)
 
 
 # ----------------------------------------------------------------------------- build

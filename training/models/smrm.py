@@ -7,7 +7,9 @@ Per frame t, with source joints x_t (J, 3) and the target's T-pose skeleton s (J
     2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0]) (3)
     3. encoder GRU (layers x H) over the features
     4. decoder GRU (layers x H) over [encoder output, s - s[0]] (the T-pose relative to its root)
-    5. heads: (J, 4) unit quaternions, the root's relative to H_t, and a root offset d_t (3)
+    5. heads: (J, 4) unit quaternions, the root's relative to H_t, and a root offset d_t (3);
+       with ``smrm_analytic_prior`` each is instead a correction applied after the analytic
+       rotation of x_t onto s (training.analytic), in the joint's own frame
     6. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, with k_t = leg length of s /
        the mean source leg length over the frames seen so far (the Mixamo-style scaling of the
        source root, corrected by the network; see minretarget.smrm for why the mean)
@@ -22,7 +24,8 @@ import torch
 from torch import nn
 
 from minretarget.config import ModelConfig
-from training.kinematics import forward_kinematics, normalize_quaternions
+from training.analytic import analytic_rotations
+from training.kinematics import forward_kinematics, normalize_quaternions, quaternion_multiply
 
 
 class MotionState(NamedTuple):
@@ -90,12 +93,22 @@ class MotionRetargeter(nn.Module):
         self.decoder = nn.GRU(h + j * 3, h, layers, batch_first=True, dropout=dropout)
         self.rotation_head = nn.Linear(h, j * 4)
         self.root_head = nn.Linear(h, 3)
-        # Start near the identity pose and no root correction.
+        # Start near the identity pose (with the analytic prior: exactly the analytic
+        # retargeting) and no root correction.
         with torch.no_grad():
             self.rotation_head.weight.mul_(0.1)
-            self.rotation_head.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(j))
             self.root_head.weight.mul_(0.1)
             self.root_head.bias.zero_()
+        self.reset_rotation_head()
+
+    def reset_rotation_head(self):
+        """Identity rotations out (zero weights with the analytic prior): what a network
+        trained without the prior needs before it learns corrections to it."""
+        with torch.no_grad():
+            if self.config.smrm_analytic_prior:
+                self.rotation_head.weight.zero_()
+            self.rotation_head.bias.copy_(
+                torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(self.config.num_joints))
 
     def initial_state(self, first_joints):
         """first_joints (B, J, 3): the stream's first source frame -> the state before it."""
@@ -124,8 +137,12 @@ class MotionRetargeter(nn.Module):
         decoder_input = torch.cat([encoded, skeleton[:, None, :].expand(b, t, -1)], dim=-1)
         decoded, decoder_hidden = self.decoder(decoder_input, state.decoder_hidden)
         rotations = normalize_quaternions(self.rotation_head(decoded).view(b, t, j, 4))
-        rotations = torch.cat([turn_quaternions(rotations[:, :, :1], sin_cos[:, :, None]),
-                               rotations[:, :, 1:]], dim=2)
+        if self.config.smrm_analytic_prior:
+            prior = analytic_rotations(source_joints, target_tpose[:, None])
+            rotations = quaternion_multiply(prior, rotations)
+        else:
+            rotations = torch.cat([turn_quaternions(rotations[:, :, :1], sin_cos[:, :, None]),
+                                   rotations[:, :, 1:]], dim=2)
 
         # The mean source leg length so far, then the scaled source root plus the offset.
         legs = leg_length(source_joints)                                # (B, T)
