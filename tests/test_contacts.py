@@ -98,7 +98,9 @@ def twins_fk(rotations, root, tpose):
 def test_a_standing_foot_stays_put_and_a_swinging_one_is_left_alone():
     tpose = human_tpose()
     rotations, root = stepping()
-    out, planted, _ = run_lock(rotations, root, tpose, FootLock(anchor_follow=0.0))
+    # A 5 cm leash: longer than SMRM's toe drifts here, so the anchor stays where it planted.
+    out, planted, _ = run_lock(rotations, root, tpose, FootLock(max_offset=0.05,
+                                                                anchor_follow=0.0))
     assert planted[5:, 0].all()                 # the standing (left) foot, once speed is known
     assert not planted[:, 1].any()              # the swinging right foot, fast and lifted
     before, after = toes_of(rotations, root, tpose), toes_of(out, root, tpose)
@@ -106,7 +108,7 @@ def test_a_standing_foot_stays_put_and_a_swinging_one_is_left_alone():
     assert np.abs(np.diff(after[5:, 0], axis=0)).max() < 1e-4
     step_before = np.linalg.norm(np.diff(before[5:, 0], axis=0), axis=-1).mean()
     assert step_before > 0.005
-    # The default anchor creeps after SMRM's toe (a tenth of the gap a frame), low-passed:
+    # The default anchor creeps after SMRM's toe (a fifth of the gap a frame), low-passed:
     # the toe moves, but far less than SMRM's.
     creeping, _, _ = run_lock(rotations, root, tpose)
     step = np.linalg.norm(np.diff(toes_of(creeping, root, tpose)[5:, 0], axis=0), axis=-1)
