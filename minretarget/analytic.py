@@ -73,7 +73,7 @@ def _analytic_frame(source, tpose, out, world):
                 for b in range(3):
                     cross_covariance[a, b] += rest[a] * posed[b]
         if count == 0:                          # a leaf keeps its parent's rotation
-            turn[:] = np.eye(3)
+            world[j] = parent
         elif count == 1:                        # the smallest turn rest -> posed
             cross = np.cross(rest, posed)
             dot = rest @ posed
@@ -82,11 +82,11 @@ def _analytic_frame(source, tpose, out, world):
                 helper = np.array([1.0, 0, 0]) if abs(rest[0]) < 0.9 else np.array([0, 1.0, 0])
                 cross, w = _unit3(np.cross(rest, helper)), 0.0
             quaternion[0], quaternion[1:] = w, cross
-            _quaternion_to_matrix_one(quaternion, turn)
         else:                                   # Kabsch: the best-aligning rotation
             _horn_quaternion(cross_covariance, count, quaternion)
+        if count:
             _quaternion_to_matrix_one(quaternion, turn)
-        world[j] = turn @ parent
+            world[j] = turn @ parent
         local = world[j] if j == 0 else world[_PARENTS[j]].T @ world[j]
         _matrix_to_quaternion_one(np.ascontiguousarray(local), quaternion)
         out[j] = quaternion

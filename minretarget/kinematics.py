@@ -67,37 +67,28 @@ def check_quaternion_norms(q, name):
 def matrix_to_quaternion(matrices):
     """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (w, x, y, z) with w >= 0.
 
-    Uses the largest of the four squared components to pick a numerically stable branch.
-    Not on the per-frame path: plain NumPy.
+    Uses the largest of the four squared components to pick a numerically stable branch;
+    computed in float64.
     """
     m = np.asarray(matrices, dtype=np.float64)
     if m.shape[-2:] != (3, 3):
         raise ValueError(f"matrices must have shape (..., 3, 3), got {m.shape}")
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    # 4*w^2, 4*x^2, 4*y^2, 4*z^2, each from the diagonal.
-    squares = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22,
-                        1 - m00 + m11 - m22, 1 - m00 - m11 + m22], axis=-1)
-    # Row k: 4 * q * q[k] from the off-diagonal terms, for each choice k of the largest component.
-    candidates = np.stack([
-        np.stack([squares[..., 0], m[..., 2, 1] - m[..., 1, 2],
-                  m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-        np.stack([m[..., 2, 1] - m[..., 1, 2], squares[..., 1],
-                  m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]], -1),
-        np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1],
-                  squares[..., 2], m[..., 2, 1] + m[..., 1, 2]], -1),
-        np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
-                  m[..., 2, 1] + m[..., 1, 2], squares[..., 3]], -1),
-    ], axis=-2)                                                      # (..., 4 choices, 4)
-    best = np.argmax(squares, axis=-1)[..., None, None]
-    q = np.take_along_axis(candidates, best, axis=-2)[..., 0, :]     # (..., 4)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    q = np.where(q[..., :1] < 0, -q, q)
-    return q.astype(np.float32)
+    flat = np.ascontiguousarray(m.reshape(-1, 3, 3))                # (..., 3, 3) -> (N, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    _matrix_to_quaternion_kernel(flat, out)
+    return out.reshape(m.shape[:-2] + (4,)).astype(np.float32)
+
+
+@kernel
+def _matrix_to_quaternion_kernel(m, out):
+    for n in range(m.shape[0]):
+        _matrix_to_quaternion_one(m[n], out[n])
 
 
 @kernel
 def _matrix_to_quaternion_one(m, q):
-    """``matrix_to_quaternion`` of one (3, 3) rotation into q (4,), in a kernel."""
+    """One (3, 3) rotation -> q (4,), unit with w >= 0: the branch of the largest of 4 w^2,
+    4 x^2, 4 y^2, 4 z^2 (each from the diagonal), the rest from the off-diagonal terms."""
     squares = (1 + m[0, 0] + m[1, 1] + m[2, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2],
                1 - m[0, 0] + m[1, 1] - m[2, 2], 1 - m[0, 0] - m[1, 1] + m[2, 2])
     best = 0

@@ -6,14 +6,11 @@ smallest turn for joints with one child, Kabsch's rotation (as Horn's quaternion
 pelvis and spine3, the parent's rotation for leaf joints.
 """
 import torch
+import torch.nn.functional as F
 
 from minretarget.analytic import CHILDREN, SQUARINGS
 from minretarget.conventions import NUM_JOINTS, PARENTS
 from training.kinematics import matrix_to_quaternion, quaternion_to_matrix
-
-
-def _unit(v, eps=1e-12):
-    return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
 
 
 def _rotation_between(a, b):
@@ -23,7 +20,7 @@ def _rotation_between(a, b):
     # Opposite vectors: a half turn about an axis perpendicular to a.
     helper = torch.where(a[..., :1].abs() < 0.9, a.new_tensor([1.0, 0, 0]),
                          a.new_tensor([0, 1.0, 0]))
-    perpendicular = _unit(torch.linalg.cross(a, helper))
+    perpendicular = F.normalize(torch.linalg.cross(a, helper), dim=-1, eps=1e-12)
     opposite = (dot < -1 + 1e-6)[..., None]
     cross = torch.where(opposite, perpendicular, cross)
     w = torch.where(opposite[..., 0], torch.zeros_like(dot), 1 + dot)
@@ -67,9 +64,10 @@ def analytic_rotations(source_joints, target_tpose):
         if not children:
             world.append(parent)
             continue
-        rest = _unit((parent[..., None, :, :]
-                      @ (tpose[..., children, :] - tpose[..., j:j + 1, :])[..., None])[..., 0])
-        posed = _unit(source[..., children, :] - source[..., j:j + 1, :])
+        rest = F.normalize((parent[..., None, :, :] @ (tpose[..., children, :]
+                            - tpose[..., j:j + 1, :])[..., None])[..., 0], dim=-1, eps=1e-12)
+        posed = F.normalize(source[..., children, :] - source[..., j:j + 1, :], dim=-1,
+                            eps=1e-12)
         turn = (_rotation_between(rest[..., 0, :], posed[..., 0, :]) if len(children) == 1
                 else _best_rotation(rest, posed))
         world.append(turn @ parent)
