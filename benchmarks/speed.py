@@ -128,9 +128,7 @@ def minretarget_stages(weights, source_points, target_points, repeats, workers):
     target = retargeter.target
     frames = [body_cloud(rng, source_points) for _ in range(8)]
     source_joints = regress_joints(frames[0], weights.skr)
-    prior = weights.config.smrm_analytic_prior
-    rotations, root, state = retarget_step(weights.smrm, None, source_joints, target.tpose_joints,
-                                           analytic_prior=prior)
+    rotations, root, state = retarget_step(weights.smrm, None, source_joints, target.tpose_joints)
     joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
     transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
     cycle = iter(range(10 ** 9))
@@ -140,7 +138,7 @@ def minretarget_stages(weights, source_points, target_points, repeats, workers):
                                          weights.config.refine_neighbours)
                            if weights.refine is not None else None),
         "smrm_step": lambda: retarget_step(weights.smrm, state, source_joints,
-                                           target.tpose_joints, analytic_prior=prior),
+                                           target.tpose_joints),
         "fk": lambda: forward_kinematics(rotations, root, target.tpose_joints),
         "lbs": lambda: linear_blend_skinning(target.points, target.skin_weights, transforms),
         "end_to_end": lambda: retargeter.step(frames[next(cycle) % 8]),

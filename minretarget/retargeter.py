@@ -184,8 +184,7 @@ class Retargeter:
         """SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""
         rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
                                                      source_joints, self.target.tpose_joints,
-                                                     self.smoothing,
-                                                     self.weights.config.smrm_analytic_prior)
+                                                     self.smoothing)
         rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
                                             self._state, self.foot_lock)
         return rotations, root

@@ -45,6 +45,9 @@ class SMRMWeights(NamedTuple):
     decoder: tuple          # GRULayer per layer
     rotation_head: Dense    # (H, J*4)
     root_head: Dense        # (H, 3)
+    # The config's smrm_analytic_prior, carried with the arrays so no caller can pair the
+    # heads with the wrong meaning: the rotations are corrections to the analytic ones (step 4').
+    analytic_prior: bool = False
 
 
 class MotionState(NamedTuple):
@@ -95,8 +98,7 @@ def check_state(weights, state):
     return MotionState(encoder, decoder, previous, velocity, leg, frames, *check_feet(state))
 
 
-def retarget_step(weights, state, source_joints, target_tpose, smoothing=None,
-                  analytic_prior=False):
+def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
     """Retarget one frame.
 
     Args:
@@ -106,8 +108,6 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None,
         target_tpose: (J, 3) float32 target T-pose joints, metres.
         smoothing: ``smoothing.Smoothing`` to smooth the source joints over time first, or
             None to use them as they are (what the torch reference does).
-        analytic_prior: the weights' ``config.smrm_analytic_prior``: whether the network's
-            rotations are corrections to ``minretarget.analytic``'s (step 4).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new MotionState (its ``previous_joints``: the source joints SMRM saw).
@@ -123,8 +123,7 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None,
     decoder_hidden = state.decoder_hidden.copy()
     rotations, root, leg = _retarget_step_kernel(
         weights, seen, target_tpose, encoder_hidden, decoder_hidden,
-        state.previous_joints[0], float(state.source_leg_length), state.frames_seen,
-        bool(analytic_prior))
+        state.previous_joints[0], float(state.source_leg_length), state.frames_seen)
     new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
                                previous_joints=seen, joint_velocity=velocity,
                                source_leg_length=leg, frames_seen=state.frames_seen + 1)
@@ -173,8 +172,7 @@ def _gru_step(x, hidden, layers):
 
 @kernel
 def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
-                          decoder_hidden, previous_root, source_leg_length, frames_seen,
-                          analytic_prior):
+                          decoder_hidden, previous_root, source_leg_length, frames_seen):
     """One frame, the module docstring's steps 1-5; updates the hidden states in place.
     Returns rotations (J, 4), root (3,) and the mean source leg length with this frame's
     (float: a running mean over ``frames_seen`` frames before it)."""
@@ -202,7 +200,7 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
         norm = np.sqrt(q[k, 0] ** 2 + q[k, 1] ** 2 + q[k, 2] ** 2 + q[k, 3] ** 2)
         q[k] /= max(norm, np.float32(1e-8))
     offset = dense(decoded, weights.root_head, False)[0]                # (3,)
-    if analytic_prior:   # 4'. each a correction after the analytic rotation, in its frame
+    if weights.analytic_prior:   # 4'. each a correction after the analytic rotation, in its frame
         prior = np.empty((j, 4), dtype=np.float32)
         _analytic_frame(source_joints, target_tpose, prior, np.empty((j, 3, 3)))
         for k in range(j):

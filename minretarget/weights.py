@@ -82,7 +82,7 @@ def weight_template(config):
                      _pointnet_template(3, config, j * 3))
     smrm = SMRMWeights(_gru_template(j * 3 + 3, config), _gru_template(h + j * 3, config),
                        Dense(_Shape((h, j * 4)), _Shape((j * 4,))),
-                       Dense(_Shape((h, 3)), _Shape((3,))))
+                       Dense(_Shape((h, 3)), _Shape((3,))), config.smrm_analytic_prior)
     skin = _mlp_template(j * 3, config.skin_widths, j)
     stages = {"skr": skr, "smrm": smrm, "skin": skin}
     if config.refines:
@@ -94,19 +94,22 @@ def weight_template(config):
 
 
 def _leaves(tree, prefix):
-    """Yield (dotted key, leaf) for every array leaf of nested NamedTuples and tuples."""
+    """Yield (dotted key, leaf) for every array leaf of nested NamedTuples and tuples (flags
+    such as ``SMRMWeights.analytic_prior`` come from the config, not the file)."""
     if isinstance(tree, (_Shape, np.ndarray)):
         yield prefix, tree
-    else:
+    elif isinstance(tree, tuple):
         names = tree._fields if hasattr(tree, "_fields") else range(len(tree))
         for name, child in zip(names, tree):
             yield from _leaves(child, f"{prefix}.{name}")
 
 
 def _rebuild(tree, prefix, arrays):
-    """Replace every leaf of ``tree`` by ``arrays[its dotted key]``."""
+    """Replace every array leaf of ``tree`` by ``arrays[its dotted key]`` (flags stay)."""
     if isinstance(tree, (_Shape, np.ndarray)):
         return arrays[prefix]
+    if not isinstance(tree, tuple):
+        return tree
     if hasattr(tree, "_fields"):
         return type(tree)(*(_rebuild(c, f"{prefix}.{n}", arrays)
                             for n, c in zip(tree._fields, tree)))

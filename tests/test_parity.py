@@ -53,7 +53,7 @@ def test_smrm_with_the_analytic_prior_matches_torch(tmp_path):
     export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None, foot_lock=None,
                                          mirror_target=False)
-    assert retargeter.weights.config.smrm_analytic_prior
+    assert retargeter.weights.config.smrm_analytic_prior and retargeter.weights.smrm.analytic_prior
     target, sources = random_stream(seed=4, frames=40)
     want = reference_outputs(model, target, sources)
     retargeter.set_target(target)
@@ -78,11 +78,11 @@ def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights
 
 def leaves(weights):
     def walk(tree):
-        if isinstance(tree, np.ndarray):
-            yield tree
-        else:
+        if isinstance(tree, tuple):
             for child in tree:
                 yield from walk(child)
+        else:                          # an array, or a flag such as SMRMWeights.analytic_prior
+            yield np.asarray(tree, dtype=np.float32)
     return [a for stage in (weights.skr, weights.smrm, weights.skin) for a in walk(stage)]
 
 

@@ -74,7 +74,8 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None):
     config = smrm.config if refine is not None else smrm.config.without_refiner()
     skr_weights = skr_runtime_weights(skr)
     smrm_weights = SMRMWeights(_gru(smrm.encoder), _gru(smrm.decoder),
-                               _dense(smrm.rotation_head), _dense(smrm.root_head))
+                               _dense(smrm.rotation_head), _dense(smrm.root_head),
+                               smrm.config.smrm_analytic_prior)
     skin_weights = MLP(_linears(skin.hidden), _dense(skin.output))
     refine_weights = None if refine is None else RefinerWeights(
         _linears(refine.point), MLP(_linears(refine.hidden), _dense(refine.output)))
