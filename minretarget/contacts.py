@@ -39,7 +39,6 @@ import numpy as np
 from ._jit import kernel
 from .conventions import FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS, UP_AXIS
 from .kinematics import _PARENTS, _forward_kinematics_kernel, check_quaternion_norms
-from .smoothing import _smoothing_factor
 from .validation import as_float32_array
 
 _LEFT = np.eye(3)[LEFT_AXIS]     # the T-pose's left axis, about which knees flex
@@ -125,6 +124,13 @@ def plant_feet(rotations, root, tpose_joints, state, foot_lock=FootLock()):
 
 
 # ----------------------------------------------------------------------------- quaternions
+
+@kernel
+def _smoothing_factor(cutoff):
+    """Exponential low-pass factor a(f) = 1 - 1 / (1 + 2 pi f / fps) for a cutoff of f Hz."""
+    return np.float32(1.0) - np.float32(1.0) / (np.float32(1.0)
+                                                + np.float32(2 * np.pi / FPS) * cutoff)
+
 
 @kernel
 def _multiply(a, b):

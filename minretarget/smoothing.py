@@ -1,19 +1,26 @@
 """Stage 1b: online smoothing of the source skeleton, between SKR and SMRM.
 
-SKR sees a fresh random sample of the source surface every frame, so the joints it finds
-jitter by a centimetre or two from one frame to the next, and SMRM passes that jitter on to
-the target. Each joint goes through a One-Euro filter (Casiez, Roussel and Vogel, CHI 2012):
-exponential smoothing whose cutoff frequency rises with the joint's speed, so a joint at rest
-is smoothed hard (no jitter) and a fast one hardly at all (little lag). Per frame, for a joint
-at x_t with the filter's last output y and speed estimate v (m/s):
-    v   <- v + a(f_d) (fps (x_t - y) - v)          a(f) = 1 - 1 / (1 + 2 pi f / fps)
-    y   <- y + a(f_min + beta |v|) (x_t - y)
-Causal and one frame at a time: the state (y, v) lives in ``smrm.MotionState``.
+SKR's joints jitter by a centimetre or two from one frame to the next (its error changes
+with the pose and the point sample), and SMRM passes that jitter on to the target. Each joint
+goes through an alpha-beta filter: a tracker that predicts the joint from its last position
+and velocity (constant velocity over one frame), then moves the prediction part of the way to
+the measured joint. Per frame, for a joint measured at x_t with the filter's last output y and
+velocity v (m/s):
+    p = y + v / fps                 the prediction
+    y <- p + alpha (x_t - p)        position gain alpha: 1 passes x_t through
+    v <- v + beta fps (x_t - p)     velocity gain beta
+Because it predicts with the velocity, a joint moving steadily is followed with no lag (a
+plain exponential filter, or a One-Euro filter, lags by v (1 - a) / a), so it can smooth harder
+for the same lag. With beta = alpha^2 / (2 - alpha) the gains are the steady-state Kalman
+gains of a constant-velocity model driven by white acceleration. Causal and one frame at a
+time: the state (y, v) lives in ``smrm.MotionState``.
 
-The defaults were chosen on validation trials (held-out subjects on held-out bodies, SKR of
-the shipped weights, 12 trials x 150 frames) before looking at the test benchmark: the least
-jitter error among a grid of (f_min, beta) whose source-joint MPJPE stays within 5 % of the
-raw joints': Acc error 0.0248 -> 0.0186 m/frame^2, MPJPE 0.0482 -> 0.0504 m.
+The defaults were chosen on validation trials (held-out subjects on held-out bodies, the
+shipped weights, 12 trials, 1,354 frames; ``benchmarks/accuracy.py --validation``): the
+least Acc error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro
+filter this replaced (min cutoff 8 Hz, beta 4). Against it, MPJPE 0.0442 -> 0.0417 m,
+PA-MPJPE 0.0259 -> 0.0258, Acc 0.0193 -> 0.0178 m/frame^2, PA-Acc 0.0154 -> 0.0141; with no
+smoothing 0.0403, 0.0253, 0.0263, 0.0207.
 """
 from typing import NamedTuple
 
@@ -25,24 +32,24 @@ from .validation import as_float32_array
 
 
 class Smoothing(NamedTuple):
-    min_cutoff: float = 8.0         # Hz: cutoff of a joint at rest
-    beta: float = 4.0               # Hz per m/s: how fast the cutoff rises with speed
-    derivative_cutoff: float = 1.0  # Hz: cutoff of the speed estimate
+    position_gain: float = 0.7     # alpha in (0, 1]: the share of the prediction's error taken
+    velocity_gain: float = 0.35    # beta in [0, alpha]: the same for the velocity, per frame
 
 
 def check_smoothing(smoothing):
-    """A Smoothing with finite cutoffs > 0 and beta >= 0, or None (no smoothing)."""
+    """A Smoothing with 0 < position_gain <= 1 and 0 <= velocity_gain <= position_gain (the
+    filter is then stable and does not overshoot a step by much), or None (no smoothing)."""
     if smoothing is None:
         return None
     try:
         smoothing = Smoothing(*map(float, smoothing))
     except (TypeError, ValueError):
-        raise ValueError(f"smoothing must be Smoothing(min_cutoff, beta, derivative_cutoff) "
-                         f"or None, got {smoothing!r}") from None
-    if not (0 < smoothing.min_cutoff < np.inf and 0 <= smoothing.beta < np.inf
-            and 0 < smoothing.derivative_cutoff < np.inf):
-        raise ValueError(f"smoothing: cutoffs must be finite and > 0 Hz and beta finite and "
-                         f">= 0, got {smoothing}")
+        raise ValueError(f"smoothing must be Smoothing(position_gain, velocity_gain) or None, "
+                         f"got {smoothing!r}") from None
+    if not (0 < smoothing.position_gain <= 1
+            and 0 <= smoothing.velocity_gain <= smoothing.position_gain):
+        raise ValueError(f"smoothing: need 0 < position_gain <= 1 and 0 <= velocity_gain <= "
+                         f"position_gain, got {smoothing}")
     return smoothing
 
 
@@ -52,9 +59,9 @@ def smooth_joints(joints, previous, velocity, smoothing=Smoothing()):
     Args:
         joints: (J, 3) float32 this frame's source joints, metres.
         previous: (J, 3) float32 the filter's output at the last frame, metres.
-        velocity: (J, 3) float32 its speed estimate at the last frame, metres per second.
-        smoothing: Smoothing, or None to pass the joints through (the speed is still
-            tracked, so smoothing can be switched on mid-stream).
+        velocity: (J, 3) float32 its velocity estimate at the last frame, metres per second.
+        smoothing: Smoothing, or None to pass the joints through (the velocity is then the
+            last frame-to-frame difference, so smoothing can be switched on mid-stream).
     Returns:
         the smoothed joints (J, 3) and the new velocity (J, 3), float32.
     """
@@ -66,32 +73,21 @@ def smooth_joints(joints, previous, velocity, smoothing=Smoothing()):
 
 
 def _parameters(smoothing):
-    """(min_cutoff, beta, derivative_cutoff) for the kernel: an infinite cutoff passes
-    every frame through unchanged."""
-    return (np.inf, 0.0, Smoothing().derivative_cutoff) if smoothing is None else smoothing
+    """(position_gain, velocity_gain) for the kernel: gains of 1 pass every frame through
+    and make the velocity the frame-to-frame difference."""
+    return (1.0, 1.0) if smoothing is None else smoothing
 
 
 @kernel
-def _smoothing_factor(cutoff):
-    """a(f) = 1 - 1 / (1 + 2 pi f / fps): 1 (no smoothing) for an infinite cutoff."""
-    return np.float32(1.0) - np.float32(1.0) / (np.float32(1.0)
-                                                + np.float32(2 * np.pi / FPS) * cutoff)
-
-
-@kernel
-def _smooth_kernel(joints, previous, velocity, min_cutoff, beta, derivative_cutoff):
+def _smooth_kernel(joints, previous, velocity, position_gain, velocity_gain):
     smoothed = np.empty_like(joints)
     new_velocity = np.empty_like(velocity)
-    a_derivative = _smoothing_factor(np.float32(derivative_cutoff))
+    alpha, beta = np.float32(position_gain), np.float32(velocity_gain)
     for j in range(joints.shape[0]):
-        speed = np.float32(0.0)
         for c in range(3):
-            v = velocity[j, c] + a_derivative * (np.float32(FPS) * (joints[j, c] - previous[j, c])
-                                                 - velocity[j, c])
-            new_velocity[j, c] = v
-            speed += v * v
-        a = _smoothing_factor(np.float32(min_cutoff) + np.float32(beta) * np.sqrt(speed))
-        for c in range(3):     # a = 1 passes the joint through exactly, not up to rounding
-            smoothed[j, c] = joints[j, c] if a >= 1 else \
-                previous[j, c] + a * (joints[j, c] - previous[j, c])
+            predicted = previous[j, c] + velocity[j, c] / np.float32(FPS)
+            error = joints[j, c] - predicted
+            # alpha = 1 passes the joint through exactly, not up to rounding
+            smoothed[j, c] = joints[j, c] if alpha >= 1 else predicted + alpha * error
+            new_velocity[j, c] = velocity[j, c] + beta * np.float32(FPS) * error
     return smoothed, new_velocity

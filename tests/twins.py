@@ -102,21 +102,21 @@ def linear_blend_skinning(points, skin_weights, transforms):
     return np.einsum("vj,vja->va", skin_weights, per_joint)
 
 
-def one_euro(frames, min_cutoff, beta, derivative_cutoff, fps=30.0):
-    """(T, J, 3) joints -> (T, J, 3) One-Euro filtered, float64 (minretarget.smoothing's
-    kernel, written from the filter's equations over a whole sequence)."""
+def alpha_beta(frames, position_gain, velocity_gain, fps=30.0):
+    """(T, J, 3) joints -> (T, J, 3) alpha-beta filtered, float64 (minretarget.smoothing's
+    kernel, written as the Kalman filter's predict-update with a fixed gain: state
+    s = (position, velocity), s <- F s + K (x - H F s), F = [[1, 1/fps], [0, 1]], H = [1, 0],
+    K = [alpha, beta fps])."""
     frames = np.asarray(frames, np.float64)
-
-    def factor(cutoff):
-        return 1.0 - 1.0 / (1.0 + 2.0 * np.pi * cutoff / fps)
-
-    out, velocity = np.empty_like(frames), np.zeros_like(frames[0])
+    transition = np.array([[1.0, 1.0 / fps], [0.0, 1.0]])
+    gain = np.array([position_gain, velocity_gain * fps])
+    state = np.stack([frames[0], np.zeros_like(frames[0])], axis=-1)          # (J, 3, 2)
+    out = np.empty_like(frames)
     out[0] = frames[0]
     for t in range(1, len(frames)):
-        velocity = velocity + factor(derivative_cutoff) * ((frames[t] - out[t - 1]) * fps
-                                                            - velocity)
-        speed = np.linalg.norm(velocity, axis=-1, keepdims=True)                # (J, 1)
-        out[t] = out[t - 1] + factor(min_cutoff + beta * speed) * (frames[t] - out[t - 1])
+        predicted = state @ transition.T
+        state = predicted + (frames[t] - predicted[..., 0])[..., None] * gain
+        out[t] = state[..., 0]
     return out
 
 
