@@ -27,10 +27,11 @@ The defaults were chosen on validation motion, never the test split
 (``python -m training.tune_contacts``: held-out subjects 06 and 09, basketball, running and
 walking, 1,354 frames on held-out bodies, SKR and SMRM of the shipped weights): the least
 PA-MPJPE among the settings of a grid whose toes move no faster over the ground truth's
-contacts than the truth's own. Chosen again for the weights with SMRM's analytic prior: the
-toe speed there falls from 0.290 to 0.172 m/s (the truth's: 0.191), for MPJPE 0.0433 ->
-0.0442 m and PA-MPJPE 0.0253 -> 0.0259 m (the previous defaults, a 5 cm leash and a 0.05
-creep: 0.133 m/s, PA-MPJPE 0.0273 m).
+contacts than the truth's own. Chosen again for the weights with SMRM's analytic prior and
+the alpha-beta source smoothing, on a grid widened to shorter leashes and faster creeps: the
+toe speed there falls from 0.295 to 0.189 m/s (the truth's: 0.191), for MPJPE 0.0411 ->
+0.0414 m and PA-MPJPE 0.0250 -> 0.0254 m (the previous defaults, a 3 cm leash and a 0.2
+creep: 0.169 m/s, PA-MPJPE 0.0258 m).
 """
 from typing import NamedTuple
 
@@ -52,10 +53,10 @@ class FootLock(NamedTuple):
     lift_speed: float = 2.0         # m/s: a faster one lifts
     speed_cutoff: float = 12.0      # Hz: low-pass of the toe track the speed is measured on
     height_margin: float = 0.05     # m: a toe plants only this close above the other toe
-    max_offset: float = 0.03        # m: a planted toe is held at most this far from SMRM's:
+    max_offset: float = 0.02        # m: a planted toe is held at most this far from SMRM's:
     #                                 beyond, its anchor is dragged along (a leash)
     release_decay: float = 0.5      # fraction of the offset kept each frame after lifting
-    anchor_follow: float = 0.2      # fraction of the way a planted toe's anchor moves each
+    anchor_follow: float = 0.3      # fraction of the way a planted toe's anchor moves each
     #                                 frame toward SMRM's (filtered) toe: a slow creep that
     #                                 keeps the legs near SMRM's pose over long contacts
 

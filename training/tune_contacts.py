@@ -24,20 +24,21 @@ from minretarget.contacts import FootLock, plant_feet
 from minretarget.kinematics import forward_kinematics
 from minretarget.metrics import acceleration_error, foot_contacts, foot_speeds, mpjpe, pa_mpjpe
 from minretarget.retargeter import Retargeter
+from minretarget.smoothing import Smoothing
 from minretarget.smrm import initial_state
 from minretarget.weights import flatten_weights, load_weights
 from training.data.datasets import validation_sequences
 
 TRIALS, MAX_FRAMES, CONTACT_HEIGHT = 12, 240, 0.03
 GRID = {"plant_speed": (1.0, 2.0), "lift_speed": (2.0,), "speed_cutoff": (12.0,),
-        "height_margin": (0.05,), "max_offset": (0.03, 0.04, 0.05, 0.07, 0.1),
-        "release_decay": (0.5,), "anchor_follow": (0.05, 0.1, 0.15, 0.2)}
+        "height_margin": (0.05,), "max_offset": (0.01, 0.02, 0.03, 0.05, 0.1),
+        "release_decay": (0.5,), "anchor_follow": (0.05, 0.1, 0.2, 0.3, 0.4)}
 
 
 def validation_streams(weights, cmu_dir, cache_dir):
     """[(name, SMRM rotations (T, J, 4), root (T, 3), target T-pose (J, 3), truth joints
     (T, J, 3))]: built and retargeted once, then read from ``cache_dir``/<weights' hash>."""
-    cache_dir = Path(cache_dir) / weights_digest(weights)[:16]
+    cache_dir = Path(cache_dir) / cache_key(weights, Smoothing())[:16]
     cache_dir.mkdir(parents=True, exist_ok=True)
     streams = []
     for trial, build in validation_sequences(cmu_dir, TRIALS, MAX_FRAMES):
@@ -56,9 +57,11 @@ def validation_streams(weights, cmu_dir, cache_dir):
     return streams
 
 
-def weights_digest(weights):
-    """SHA-256 of the weights' arrays, so that a cache made with others is not reused."""
-    digest = hashlib.sha256()
+def cache_key(weights, smoothing):
+    """SHA-256 of the weights' arrays and the source smoothing the streams are made with (the
+    runtime's default), so that a cache made with other weights or another filter is not
+    reused."""
+    digest = hashlib.sha256(repr(smoothing).encode())
     for name, array in sorted(flatten_weights(weights).items()):
         digest.update(name.encode())
         digest.update(np.ascontiguousarray(array).tobytes())
