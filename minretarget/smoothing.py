@@ -16,7 +16,7 @@ gains of a constant-velocity model driven by white acceleration. Causal and one 
 time: the state (y, v) lives in ``smrm.MotionState``.
 
 The defaults were chosen on validation trials (held-out subjects on held-out bodies, the
-shipped weights, 12 trials, 1,354 frames; ``benchmarks/accuracy.py --validation``): the
+weights shipped before the refiner's longer training, 12 trials, 1,354 frames; ``benchmarks/accuracy.py --validation``): the
 least Acc error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro
 filter this replaced (min cutoff 8 Hz, beta 4). Against it, MPJPE 0.0442 -> 0.0417 m,
 PA-MPJPE 0.0259 -> 0.0258, Acc 0.0193 -> 0.0178 m/frame^2, PA-Acc 0.0154 -> 0.0141; with no
