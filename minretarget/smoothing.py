@@ -10,15 +10,15 @@ velocity v (m/s):
     y <- p + alpha (x_t - p)        position gain alpha: 1 passes x_t through
     v <- v + beta fps (x_t - p)     velocity gain beta
 Because it predicts with the velocity, a joint moving steadily is followed with no lag (a
-plain exponential filter, or a One-Euro filter, lags by v (1 - a) / a), so it can smooth harder
-for the same lag. With beta = alpha^2 / (2 - alpha) the gains are the steady-state Kalman
-gains of a constant-velocity model driven by white acceleration. Causal and one frame at a
-time: the state (y, v) lives in ``smrm.MotionState``.
+plain exponential filter, or a One-Euro filter, lags by v (1 - a) / (a fps)), so it can smooth
+harder for the same lag. The defaults are near Benedict and Bordner's relation
+beta = alpha^2 / (2 - alpha) (0.38 for alpha = 0.7). Causal and one frame at a time: the
+state (y, v) lives in ``smrm.MotionState``.
 
 The defaults were chosen on validation trials (held-out subjects on held-out bodies, the
-weights shipped before the refiner's longer training, 12 trials, 1,354 frames; ``benchmarks/accuracy.py --validation``): the
-least Acc error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro
-filter this replaced (min cutoff 8 Hz, beta 4). Against it, MPJPE 0.0442 -> 0.0417 m,
+weights shipped before the refiner's longer training, 12 trials, 1,354 frames): the least Acc
+error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro filter this
+replaced (min cutoff 8 Hz, beta 4). Against it, MPJPE 0.0442 -> 0.0417 m,
 PA-MPJPE 0.0259 -> 0.0258, Acc 0.0193 -> 0.0178 m/frame^2, PA-Acc 0.0154 -> 0.0141; with no
 smoothing 0.0403, 0.0253, 0.0263, 0.0207.
 """
@@ -38,10 +38,12 @@ class Smoothing(NamedTuple):
 
 def check_smoothing(smoothing):
     """A Smoothing with 0 < position_gain <= 1 and 0 <= velocity_gain <= position_gain (the
-    filter is then stable and does not overshoot a step by much), or None (no smoothing)."""
+    filter is then stable; small gains overshoot a step more), or None (no smoothing)."""
     if smoothing is None:
         return None
     try:
+        if len(smoothing) != len(Smoothing._fields):
+            raise ValueError
         smoothing = Smoothing(*map(float, smoothing))
     except (TypeError, ValueError):
         raise ValueError(f"smoothing must be Smoothing(position_gain, velocity_gain) or None, "

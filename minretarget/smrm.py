@@ -55,7 +55,7 @@ class MotionState(NamedTuple):
     encoder_hidden: np.ndarray   # (layers, H) float32
     decoder_hidden: np.ndarray   # (layers, H) float32
     previous_joints: np.ndarray  # (J, 3) float32 the source joints SMRM saw last frame, metres
-    joint_velocity: np.ndarray   # (J, 3) float32 their speed estimate (smoothing), m/s
+    joint_velocity: np.ndarray   # (J, 3) float32 their velocity estimate (smoothing), m/s
     source_leg_length: float     # mean source leg length over the frames seen, metres
     frames_seen: int
     # Foot contacts (``minretarget.contacts``), per leg (left, right):

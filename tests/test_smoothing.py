@@ -77,7 +77,8 @@ def test_bad_settings_are_named():
     assert check_smoothing(None) is None
     assert check_smoothing((0.5, 0.25)) == Smoothing(0.5, 0.25)
     for bad in (Smoothing(0.0, 0.0), Smoothing(1.5, 0.1), Smoothing(0.5, -0.1),
-                Smoothing(0.5, 0.6), Smoothing(np.nan, 0.1), (0.5, 0.2, 1.0), "fast"):
+                Smoothing(0.5, 0.6), Smoothing(np.nan, 0.1), (0.5, 0.2, 1.0), (0.5,),
+                "fast"):
         with pytest.raises(ValueError, match="smoothing"):
             check_smoothing(bad)
 

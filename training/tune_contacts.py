@@ -45,7 +45,7 @@ def validation_streams(weights, cmu_dir, cache_dir):
         path = cache_dir / f"{trial.name}.npz"
         if not path.is_file():
             sequence = build()
-            retargeter = Retargeter(weights, warn=False, foot_lock=None)
+            retargeter = Retargeter(weights, warn=False, smoothing=Smoothing(), foot_lock=None)
             retargeter.set_target(sequence["target_tpose_points"])
             frames = retargeter.retarget_sequence(sequence["source_points"])
             np.savez(path, rotations=frames.rotations, root=frames.root,
