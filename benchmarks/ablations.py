@@ -110,7 +110,7 @@ def main(argv=None):
     if missing:
         sys.exit(f"no weights for {missing}: run with --train")
     variants = {v: load_weights(p) for v, p in paths.items()}
-    shipped = Retargeter(load_weights(), warn=False, smoothing=None)       # SKR's raw joints
+    shipped = Retargeter(load_weights(), warn=False, smoothing=None, denoise=False)  # raw joints
     sequence_paths, frames = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")),
                                               args.quick)
     started, totals, count = time.perf_counter(), {}, 0

@@ -7,22 +7,25 @@ Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed uns
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     model                the weights given (default: the shipped weights), as ``Retargeter``
                          runs them by default: SKR's joints moved by the joint refiner
-                         (minretarget.refine) and smoothed over time (minretarget.smoothing)
-                         before SMRM, feet held on their contacts after it
-                         (minretarget.contacts)
+                         (minretarget.refine), smoothed over time (minretarget.smoothing)
+                         and denoised (minretarget.denoise) before SMRM, feet held on their
+                         contacts after it (minretarget.contacts)
     model, no refiner    the same without the joint refiner (source and target skeletons)
+    model, no denoiser   the same as the model without the skeleton denoiser
     model, no foot lock  the same as the model without the foot contacts
     model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
                          averaged with those of each cloud's mirror image
     model, paper pipeline  the paper's: SKR once on the target T-pose (not mirror-averaged),
-                         SKR's source joints as they come (no refiner, no smoothing), SMRM's
-                         rotations as they come
-    analytic             the model's (smoothed) source bones, each target bone rotated onto its
-                         source bone (minretarget.analytic), FK, LBS with SKIN weights: no SMRM
-    oracle source        ground-truth source joints instead of SKR (not smoothed; foot lock on)
+                         SKR's source joints as they come (no refiner, no smoothing, no
+                         denoiser), SMRM's rotations as they come
+    analytic             the model's (smoothed, denoised) source bones, each target bone
+                         rotated onto its source bone (minretarget.analytic), FK, LBS with
+                         SKIN weights: no SMRM
+    oracle source        ground-truth source joints instead of SKR (not smoothed or denoised;
+                         foot lock on)
     oracle target        ground-truth target T-pose joints and skinning weights instead of
                          SKR + SKIN (otherwise as the model)
-    oracle both          both of the above (not smoothed; foot lock on)
+    oracle both          both of the above (not smoothed or denoised; foot lock on)
     paper                the paper's Table 4, reported on its own SMPL test set (not this one)
 Every row but ``paper`` is averaged over frames. A second table gives foot sliding: the mean
 horizontal speed of the toes over the steps where the ground truth's toes touch the ground
@@ -51,7 +54,8 @@ from minretarget.weights import load_weights
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
-ROWS = ("model", "model, no refiner", "model, no foot lock", "model, mirrored source",
+ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock",
+        "model, mirrored source",
         "model, paper pipeline", "analytic", "oracle source", "oracle target", "oracle both")
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
@@ -85,8 +89,8 @@ def stacked(frames):
 
 def run_sequence(weights, sequence, wanted=ROWS):
     """The ``wanted`` rows' (joints, vertices) for one test sequence, and the seconds the
-    default model took (SKR and the joint refiner over the frames, then smoothing, SMRM,
-    foot contacts, FK and LBS a frame at a time)."""
+    default model took (SKR and the joint refiner over the frames, then smoothing, the
+    denoiser, SMRM, foot contacts, FK and LBS a frame at a time)."""
     points = sequence["target_tpose_points"]
     learned = Retargeter(weights)
     learned.set_target(points)
@@ -95,14 +99,16 @@ def run_sequence(weights, sequence, wanted=ROWS):
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
     paper = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
-                       refine=False)
+                       refine=False, denoise=False)
     paper.set_target(points)                         # its own rig: SKR once on the T-pose
     unrefined = Retargeter(weights, refine=False)
     unrefined.set_target(points)                     # its own rig: SKR's, not refined
-    no_lock, raw = Retargeter(weights, foot_lock=None), Retargeter(weights, smoothing=None)
+    no_lock, no_denoiser = Retargeter(weights, foot_lock=None), Retargeter(weights, denoise=False)
+    raw = Retargeter(weights, smoothing=None, denoise=False)
     mirrored = Retargeter(weights, mirror_source=True)
-    oracle_rig, oracle_rig_raw = Retargeter(weights), Retargeter(weights, smoothing=None)
-    for retargeter, this_rig in ((no_lock, rig), (raw, rig), (mirrored, rig),
+    oracle_rig = Retargeter(weights)
+    oracle_rig_raw = Retargeter(weights, smoothing=None, denoise=False)
+    for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (raw, rig), (mirrored, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig)):
         retargeter.set_target(points, **this_rig)
     start = time.perf_counter()
@@ -122,6 +128,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     make = {"model": lambda: model,
             "model, no refiner": lambda: stream(unrefined, skr_alone()),
+            "model, no denoiser": lambda: stream(no_denoiser, raw_joints),
             "model, no foot lock": lambda: stream(no_lock, raw_joints),
             "model, mirrored source": lambda: stacked(mirrored.run(sequence["source_points"])),
             "model, paper pipeline": lambda: stream(paper, skr_alone()),

@@ -2,8 +2,8 @@
 
     python benchmarks/parity.py [--frames 60] [--points 2048] [--target 13718]
 
-The model: the paper recipe's sizes (the paper's, and the joint refiner), every parameter
-random (tests/reference_models.py).
+The model: the paper recipe's sizes (the paper's, the joint refiner and the skeleton denoiser),
+every parameter random (tests/reference_models.py).
 The stream is a synthetic body-sized cloud drifting forward; the target a body-sized cloud.
 """
 import argparse
@@ -30,7 +30,8 @@ def main():
     torch.set_num_threads(1)
     model = random_reference(load_recipe("paper").model, seed=0)
     # Synthetic Gaussian clouds, not bodies: the unit and T-pose warnings do not apply.
-    weights = runtime_weights(model.skr, model.smrm, model.skin, refine=model.refine)
+    weights = runtime_weights(model.skr, model.smrm, model.skin, refine=model.refine,
+                              denoise=model.denoise)
     retargeter = Retargeter(weights, warn=False,
                             smoothing=None, foot_lock=None, mirror_target=False)
     target, sources = random_stream(seed=0, frames=args.frames, target_points=args.target,
@@ -41,9 +42,9 @@ def main():
                                                  - model.tpose_joints.numpy()).max(),
               "SKIN weights": np.abs(retargeter.target.skin_weights
                                      - model.skin_weights.numpy()).max()}
-    worst = {"SKR + refiner joints (m)": 0.0, "SMRM rotations": 0.0, "SMRM root (m)": 0.0,
+    worst = {"source joints (m)": 0.0, "SMRM rotations": 0.0, "SMRM root (m)": 0.0,
              "FK joints (m)": 0.0, "LBS vertices (m)": 0.0}
-    keys = {"SKR + refiner joints (m)": "source_joints", "SMRM rotations": "rotations",
+    keys = {"source joints (m)": "source_joints", "SMRM rotations": "rotations",
             "SMRM root (m)": "root", "FK joints (m)": "joints", "LBS vertices (m)": "vertices"}
     for points in sources:
         ours, theirs = retargeter.step(points), model.step(torch.from_numpy(points))

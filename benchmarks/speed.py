@@ -31,6 +31,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from minretarget.denoise import denoise_joints
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.retargeter import Retargeter
@@ -89,7 +90,15 @@ def stage_flops(config, points, vertices):
             "smrm_step": 2 * (gru + h * (j * 4 + 3)),
             "fk": 2 * j * (27 + 9),                                  # R_parent R_local, R t
             "lbs": 2 * vertices * j * 12 + 2 * vertices * 12,        # blend maps, apply
-            "refine": refine_flops(config, points)}
+            "refine": refine_flops(config, points), "denoise": denoise_flops(config)}
+
+
+def denoise_flops(config):
+    """The skeleton denoiser's FLOPs per frame: its GRU layers and head."""
+    h, j = config.denoise_hidden, config.num_joints
+    gru = sum(3 * h * ((j * 3 + 3 if layer == 0 else h) + h)
+              for layer in range(config.denoise_layers))
+    return 2 * (gru + h * j * 3) if config.denoises else 0
 
 
 def refine_flops(config, points):
@@ -131,12 +140,17 @@ def minretarget_stages(weights, source_points, target_points, repeats, workers):
     rotations, root, state = retarget_step(weights.smrm, None, source_joints, target.tpose_joints)
     joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
     transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
+    denoise_hidden = np.zeros((weights.config.denoise_layers, weights.config.denoise_hidden),
+                              np.float32)
     cycle = iter(range(10 ** 9))
     stages = {
         "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr, workers),
         "refine": lambda: (refine_joints(frames[next(cycle) % 8], source_joints, weights.refine,
                                          weights.config.refine_neighbours)
                            if weights.refine is not None else None),
+        "denoise": lambda: (denoise_joints(weights.denoise, denoise_hidden, source_joints,
+                                           source_joints[0])
+                            if weights.denoise is not None else None),
         "smrm_step": lambda: retarget_step(weights.smrm, state, source_joints,
                                            target.tpose_joints),
         "fk": lambda: forward_kinematics(rotations, root, target.tpose_joints),
@@ -156,7 +170,8 @@ def torch_reference(weights, target):
     from training.export import import_weights
     from training.models.pipeline import ReferenceRetargeter
     reference = ReferenceRetargeter(weights.config)
-    import_weights(weights, reference.skr, reference.smrm, reference.skin, reference.refine)
+    import_weights(weights, reference.skr, reference.smrm, reference.skin, reference.refine,
+                   reference.denoise)
     reference.eval()
     reference.target_points = torch.from_numpy(target.points)
     reference.tpose_joints = torch.from_numpy(target.tpose_joints)
@@ -203,14 +218,18 @@ def onnx_times(reference, frames, threads, repeats):
             self.reference = reference
 
         def forward(self, points, *state):
-            out, new_state = self.reference(points, MotionState(*state))
-            return (out["vertices"], out["joints"], out["rotations"], out["root"], *new_state)
+            smrm = MotionState(*state[:len(MotionState._fields)])
+            out, (smrm, denoise) = self.reference(
+                points, (smrm, state[len(MotionState._fields):] or None))
+            return (out["vertices"], out["joints"], out["rotations"], out["root"], *smrm,
+                    *(denoise or ()))
 
     with torch.no_grad():
-        _, state = reference(torch.from_numpy(frames[0]), None)
-    inputs = (torch.from_numpy(frames[1]),) + tuple(state)
-    names = ["points", "encoder_hidden", "decoder_hidden", "previous_root", "source_leg_length",
-             "frames_seen"]
+        _, (smrm_state, denoise_state) = reference(torch.from_numpy(frames[0]), None)
+    state = tuple(smrm_state) + tuple(denoise_state or ())
+    inputs = (torch.from_numpy(frames[1]),) + state
+    names = ["points", *MotionState._fields] + (["denoise_hidden", "denoise_root"]
+                                                if denoise_state else [])
     start = time.perf_counter()
     with torch.no_grad(), tempfile.TemporaryDirectory() as directory:
         path = os.path.join(directory, "step.onnx")
@@ -229,7 +248,8 @@ def onnx_times(reference, frames, threads, repeats):
     # Check it computes what torch does before timing it.
     vertices = session.run(None, feeds[1])[0]
     with torch.no_grad():
-        expected = reference(torch.from_numpy(frames[1]), state)[0]["vertices"].numpy()
+        expected = reference(torch.from_numpy(frames[1]),
+                             (smrm_state, denoise_state))[0]["vertices"].numpy()
     error = float(np.abs(vertices - expected).max())
     cycle = iter(range(10 ** 9))
     ms = 1e3 * time_per_call(lambda: session.run(None, feeds[next(cycle) % 8]), repeats)
@@ -325,7 +345,8 @@ def main():
               f"{results['matmul_peak_gflops']:.1f} GFLOP/s")
         results["compile"] = compile_times(args.weights)
         print(f"numba: {json.dumps(results['compile'])}")
-        header = ("P", "V", "skr", "refine", "smrm_step", "fk", "lbs", "end_to_end", "fps",
+        header = ("P", "V", "skr", "refine", "denoise", "smrm_step", "fk", "lbs", "end_to_end",
+                  "fps",
                   "torch", "compiled", "onnxrt")
         print(" ".join(f"{h:>10}" for h in header))
         for p, v in [DEFAULT_SETTING] if args.quick else SETTINGS:
@@ -338,8 +359,8 @@ def main():
                    "onnxruntime": onnx_times(reference, frames, args.threads, repeats)}
             results["settings"].append(row)
             print(" ".join(f"{x:>10}" for x in (p, v)) + " " + " ".join(
-                f"{ms[k]:>8.3f}ms" for k in ("skr", "refine", "smrm_step", "fk", "lbs",
-                                             "end_to_end"))
+                f"{ms[k]:>8.3f}ms" for k in ("skr", "refine", "denoise", "smrm_step", "fk",
+                                             "lbs", "end_to_end"))
                 + f" {row['fps_end_to_end']:>10.1f} {row['torch']['end_to_end']:>8.3f}ms "
                 + (f"{row['torch']['compiled_end_to_end']:>8.3f}ms"
                    if "compiled_end_to_end" in row["torch"] else f"{'-':>10}")

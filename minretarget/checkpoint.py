@@ -37,8 +37,9 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 4          # 2: the state holds the smoothed joints, their speed, the longest leg;
-#                      3: and the foot contacts; 4: the mean leg length, not the longest
+VERSION = 5          # 2: the state holds the smoothed joints, their speed, the longest leg;
+#                      3: and the foot contacts; 4: the mean leg length, not the longest;
+#                      5: and the denoiser's (the smoothed and the denoised joints apart)
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -120,12 +121,13 @@ def _digest(arrays):
 
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
-               foot_lock=None, mirror_source=False, refine=True):
+               foot_lock=None, mirror_source=False, refine=True, denoise=True):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
-    whether SKR also runs on the source's mirror images and whether its joints are refined."""
+    whether SKR also runs on the source's mirror images, whether its joints are refined and
+    whether they are denoised."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
@@ -137,7 +139,8 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             "mirror_source": bool(mirror_source),
             # Recorded only when it changes the result, so runs from before the refiner and
             # runs with weights that have none still match their checkpoints.
-            **({"refine": True} if refine and weights.refine is not None else {})}
+            **({"refine": True} if refine and weights.refine is not None else {}),
+            **({"denoise": True} if denoise and weights.denoise is not None else {})}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):
@@ -184,7 +187,8 @@ def load_checkpoint(out_dir, run, weights):
     try:
         state = MotionState(**{name: arrays[name] for name in MotionState._fields})
         state = check_state(weights.smrm, state._replace(
-            source_leg_length=float(state.source_leg_length), frames_seen=int(state.frames_seen)))
+            source_leg_length=float(state.source_leg_length), frames_seen=int(state.frames_seen)),
+            weights.denoise if run.get("denoise") else None)
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: bad saved state: {error}") from None
     if state.frames_seen != frames_done:

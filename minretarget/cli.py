@@ -4,7 +4,8 @@
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
                          [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
                          [--weights FILE] [--no-smoothing] [--no-foot-lock]
-                         [--mirror-source] [--no-refine] [--resume | --overwrite]
+                         [--mirror-source] [--no-refine] [--no-denoise]
+                         [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
@@ -45,7 +46,7 @@ DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
-                    mirror_source=False, refine=True):
+                    mirror_source=False, refine=True, denoise=True):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -56,7 +57,7 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
     # warn=False: the command line checks the inputs itself, naming files and options.
     return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
                                    foot_lock=foot_lock, mirror_source=mirror_source,
-                                   refine=refine)
+                                   refine=refine, denoise=denoise)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -115,10 +116,13 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     tqdm = require("tqdm", "the progress bar").tqdm
     out_dir = Path(out_dir)
     if source.kind != "points":
-        retargeter.smoothing = None     # a skeleton source is clean: smoothing would only lag
+        # A skeleton source is clean: smoothing would only lag, and the denoiser learned SKR's
+        # errors, not its.
+        retargeter.smoothing, retargeter.denoise = None, False
     run = run_record(source, retargeter.target, retargeter.weights, formats, space,
                      smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
                      mirror_source=retargeter.mirror_source, refine=retargeter.refine,
+                     denoise=retargeter.denoise,
                      **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
@@ -175,7 +179,7 @@ def _retarget(args):
     formats = parse_formats(args.format)
     retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
                                  None if args.no_foot_lock else FootLock(), args.mirror_source,
-                                 not args.no_refine)
+                                 not args.no_refine, not args.no_denoise)
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -281,6 +285,10 @@ def build_parser():
     retarget.add_argument("--no-refine", action="store_true",
                           help="use SKR's joints as they are (default: each is moved by the "
                                "weights' joint refiner, which looks at the points around it)")
+    retarget.add_argument("--no-denoise", action="store_true",
+                          help="hand SMRM the smoothed source skeleton (default: the weights' "
+                               "denoiser, trained on SKR's skeletons of moving bodies, takes "
+                               "out most of its jitter first)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

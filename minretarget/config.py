@@ -35,6 +35,10 @@ class ModelConfig:
     # joint's own frame. False: the paper's SMRM (the root's rotation relative to the heading).
     # Last, so that positional configs from before it keep their meaning.
     smrm_analytic_prior: bool = False
+    # Not in the paper: the source skeleton's denoiser (minretarget.denoise), a GRU
+    # denoise_layers deep and denoise_hidden wide; none when denoise_hidden is 0.
+    denoise_hidden: int = 0
+    denoise_layers: int = 1
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
@@ -57,16 +61,28 @@ class ModelConfig:
         if self.refine_neighbours < 1 or (self.refine_head_widths
                                           and not self.refine_point_widths):
             raise ValueError(f"invalid refiner config {self}")
+        if self.denoise_hidden < 0 or self.denoise_layers < 1:
+            raise ValueError(f"invalid denoiser config {self}")
 
     @property
     def refines(self):
         """Whether the weights hold a joint refiner (``minretarget.refine``)."""
         return bool(self.refine_point_widths)
 
+    @property
+    def denoises(self):
+        """Whether the weights hold a skeleton denoiser (``minretarget.denoise``)."""
+        return self.denoise_hidden > 0
+
     def without_refiner(self):
         """These sizes with no joint refiner (what weights from before it have)."""
         return dataclasses.replace(self, refine_point_widths=(), refine_head_widths=(),
                                    refine_neighbours=ModelConfig.refine_neighbours)
+
+    def without_denoiser(self):
+        """These sizes with no skeleton denoiser (what weights from before it have)."""
+        return dataclasses.replace(self, denoise_hidden=0,
+                                   denoise_layers=ModelConfig.denoise_layers)
 
     def to_json(self):
         return json.dumps(dataclasses.asdict(self), sort_keys=True)

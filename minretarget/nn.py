@@ -15,6 +15,13 @@ class Dense(NamedTuple):
     bias: np.ndarray     # (out,) float32
 
 
+class GRULayer(NamedTuple):
+    input_weight: np.ndarray    # (in, 3H) float32, gates in torch's order: reset, update, new
+    hidden_weight: np.ndarray   # (H, 3H)
+    input_bias: np.ndarray      # (3H,)
+    hidden_bias: np.ndarray     # (3H,)
+
+
 class MLP(NamedTuple):
     hidden: tuple        # Dense layers, each followed by ReLU
     output: Dense        # the last layer, no activation
@@ -43,3 +50,27 @@ def mlp(x, weights):
 @kernel
 def sigmoid(x):
     return np.float32(1.0) / (np.float32(1.0) + np.exp(-x))
+
+
+@kernel
+def gru_layer_step(x, hidden, layer):
+    """One GRU cell step, torch's equations. x (1, in), hidden (1, H) -> new hidden (1, H)."""
+    h = hidden.shape[1]
+    gates_x = dense(x, Dense(layer.input_weight, layer.input_bias), False)       # (1, 3H)
+    gates_h = dense(hidden, Dense(layer.hidden_weight, layer.hidden_bias), False)
+    out = np.empty_like(hidden)
+    for k in range(h):
+        reset = sigmoid(gates_x[0, k] + gates_h[0, k])
+        update = sigmoid(gates_x[0, h + k] + gates_h[0, h + k])
+        new = np.tanh(gates_x[0, 2 * h + k] + reset * gates_h[0, 2 * h + k])
+        out[0, k] = (np.float32(1.0) - update) * new + update * hidden[0, k]
+    return out
+
+
+@kernel
+def gru_step(x, hidden, layers):
+    """Stacked GRU step; updates ``hidden`` (layers, H) in place, returns the top output."""
+    for i in range(len(layers)):
+        x = gru_layer_step(x, hidden[i:i + 1], layers[i])
+        hidden[i] = x[0]
+    return x

@@ -39,7 +39,8 @@ class RetargetedFrame(NamedTuple):
 
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
-                 foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True):
+                 foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
+                 denoise=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -57,7 +58,11 @@ class Retargeter:
         ``workers=2`` the cloud and its mirror image run side by side), for 1.7 mm of
         PA-MPJPE and 2.2 mm/frame^2 of Acc on the test benchmark (README, Results).
         ``refine``: move SKR's joints with the weights' joint refiner (``refine``), if they
-        have one; False for SKR's joints as they are (the paper's pipeline)."""
+        have one; False for SKR's joints as they are (the paper's pipeline).
+        ``denoise``: pass the smoothed source skeleton through the weights' denoiser
+        (``denoise``: a GRU trained on SKR's skeletons of moving bodies), if they have one;
+        False to hand SMRM the smoothed skeleton (the paper's pipeline). Takes effect when a
+        stream starts."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
@@ -66,16 +71,17 @@ class Retargeter:
         self.mirror_target = bool(mirror_target)
         self.mirror_source = bool(mirror_source)
         self.refine = bool(refine)
+        self.denoise = bool(denoise)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True):
+                     refine=True, denoise=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine)
+                   mirror_source, refine, denoise)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -125,7 +131,13 @@ class Retargeter:
 
     @state.setter
     def state(self, state):
-        self._state = None if state is None else check_state(self.weights.smrm, state)
+        self._state = None if state is None else check_state(self.weights.smrm, state,
+                                                             self.denoiser)
+
+    @property
+    def denoiser(self):
+        """The weights' denoiser if ``denoise`` is on and they have one, else None."""
+        return self.weights.denoise if self.denoise else None
 
     def step(self, points):
         """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
@@ -137,8 +149,8 @@ class Retargeter:
         return self._step_joints(self._skr(points, self.mirror_source))
 
     def step_skeleton(self, source_joints):
-        """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; it is
-        smoothed like SKR's unless ``smoothing`` is None)."""
+        """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
+        SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``)."""
         if self.target is None:
             raise RuntimeError("call set_target before step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
@@ -154,7 +166,8 @@ class Retargeter:
                                self._state.previous_joints.copy())
 
     def skeleton(self, points):
-        """The source skeleton(s) that ``step`` would hand SMRM (before smoothing): SKR,
+        """The source skeleton(s) that ``step`` would hand SMRM before smoothing and
+        denoising: SKR,
         mirror-averaged if ``mirror_source``, refined if ``refine``.
 
         Args:
@@ -181,10 +194,11 @@ class Retargeter:
         return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
 
     def _retarget_step(self, source_joints):
-        """SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""
+        """Smoothing, denoising, SMRM then the foot contacts on one frame's source skeleton
+        -> rotations, root."""
         rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
                                                      source_joints, self.target.tpose_joints,
-                                                     self.smoothing)
+                                                     self.smoothing, self.denoiser)
         rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
                                             self._state, self.foot_lock)
         return rotations, root

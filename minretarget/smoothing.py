@@ -1,4 +1,4 @@
-"""Stage 1b: online smoothing of the source skeleton, between SKR and SMRM.
+"""Stage 1c: online smoothing of the source skeleton, between SKR (and the refiner) and SMRM.
 
 SKR's joints jitter by a centimetre or two from one frame to the next (its error changes
 with the pose and the point sample), and SMRM passes that jitter on to the target. Each joint

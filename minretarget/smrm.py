@@ -1,7 +1,8 @@
 """Stage 2, SMRM: skeletal motion retargeting, one frame at a time with explicit GRU state.
 
 Per frame, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 3):
-    0. x_t smoothed over time (``minretarget.smoothing``, when asked): SMRM sees the result
+    0. x_t smoothed over time (``minretarget.smoothing``, when asked), then
+    0'. denoised (``minretarget.denoise``, when asked): SMRM sees the result
     1. heading H_t: the turn about +Y from +Z to the way the source faces (hips and shoulders);
        the network sees and predicts everything in this body-aligned frame
     2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0])
@@ -28,16 +29,12 @@ from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
-from .nn import Dense, dense, sigmoid
+from .denoise import _denoise_kernel, heading_features, turn_about_up
+# GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
+# and must still unpickle (to be found stale) rather than fail the import.
+from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401
 from .smoothing import _parameters, _smooth_kernel, check_smoothing
 from .validation import as_float32_array
-
-
-class GRULayer(NamedTuple):
-    input_weight: np.ndarray    # (in, 3H) float32, gates in torch's order: reset, update, new
-    hidden_weight: np.ndarray   # (H, 3H)
-    input_bias: np.ndarray      # (3H,)
-    hidden_bias: np.ndarray     # (3H,)
 
 
 class SMRMWeights(NamedTuple):
@@ -51,11 +48,15 @@ class SMRMWeights(NamedTuple):
 
 
 class MotionState(NamedTuple):
-    """Everything SMRM carries from one frame to the next."""
+    """Everything SMRM (and the smoothing and denoising before it) carries from one frame to
+    the next."""
     encoder_hidden: np.ndarray   # (layers, H) float32
     decoder_hidden: np.ndarray   # (layers, H) float32
     previous_joints: np.ndarray  # (J, 3) float32 the source joints SMRM saw last frame, metres
-    joint_velocity: np.ndarray   # (J, 3) float32 their velocity estimate (smoothing), m/s
+    smoothed_joints: np.ndarray  # (J, 3) float32 the smoothing's last output, metres (the
+                                 # same as previous_joints with no denoiser)
+    joint_velocity: np.ndarray   # (J, 3) float32 its velocity estimate (smoothing), m/s
+    denoise_hidden: np.ndarray   # (layers, H) float32 the denoiser's GRU; (0, 0) without one
     source_leg_length: float     # mean source leg length over the frames seen, metres
     frames_seen: int
     # Foot contacts (``minretarget.contacts``), per leg (left, right):
@@ -65,29 +66,38 @@ class MotionState(NamedTuple):
     feet_planted: np.ndarray     # (2,) bool
 
 
-def initial_state(weights, first_joints):
-    """The state before a stream whose first source frame has joints ``first_joints`` (J, 3)."""
+def _denoise_shape(denoiser):
+    return ((len(denoiser.gru), denoiser.gru[0].hidden_weight.shape[0])
+            if denoiser is not None else (0, 0))
+
+
+def initial_state(weights, first_joints, denoiser=None):
+    """The state before a stream whose first source frame has joints ``first_joints`` (J, 3),
+    for SMRMWeights ``weights`` and DenoiserWeights ``denoiser`` (or None)."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     zeros = np.zeros((layers, hidden), dtype=np.float32)
     first_joints = np.array(first_joints, dtype=np.float32)
     feet = np.zeros((2, 3), dtype=np.float32)
-    return MotionState(zeros, zeros.copy(), first_joints, np.zeros_like(first_joints), 0.0, 0,
+    return MotionState(zeros, zeros.copy(), first_joints, first_joints.copy(),
+                       np.zeros_like(first_joints),
+                       np.zeros(_denoise_shape(denoiser), dtype=np.float32), 0.0, 0,
                        feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool))
 
 
-def check_state(weights, state):
-    """A MotionState checked against ``weights`` (e.g. one read back from a file): hidden
-    states (layers, H), finite (J, 3) joints and velocities, a count and a finite length >= 0,
-    finite (2, 3) foot-contact arrays and (2,) bool planted flags.
+def check_state(weights, state, denoiser=None):
+    """A MotionState checked against ``weights`` and ``denoiser`` (e.g. one read back from a
+    file): hidden states of the right shapes, finite (J, 3) joints and velocities, a count
+    and a finite length >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags.
     Returns it with C-contiguous float32 arrays; ValueError names the field."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     if not isinstance(state, MotionState):
         raise ValueError(f"state must be a MotionState, got {type(state).__name__}")
     encoder = as_float32_array(state.encoder_hidden, "state.encoder_hidden", (layers, hidden))
     decoder = as_float32_array(state.decoder_hidden, "state.decoder_hidden", (layers, hidden))
-    previous = as_float32_array(state.previous_joints, "state.previous_joints",
-                                (NUM_JOINTS, 3))
-    velocity = as_float32_array(state.joint_velocity, "state.joint_velocity", (NUM_JOINTS, 3))
+    joints = [as_float32_array(getattr(state, name), f"state.{name}", (NUM_JOINTS, 3))
+              for name in ("previous_joints", "smoothed_joints", "joint_velocity")]
+    denoise = as_float32_array(state.denoise_hidden, "state.denoise_hidden",
+                               _denoise_shape(denoiser))
     try:
         leg, frames = float(state.source_leg_length), int(state.frames_seen)
     except (TypeError, ValueError, OverflowError):                  # None, "x", inf
@@ -95,10 +105,10 @@ def check_state(weights, state):
     if frames < 0 or frames != state.frames_seen or not 0 <= leg < np.inf:
         raise ValueError(f"state: frames_seen {state.frames_seen!r} and source_leg_length "
                          f"{state.source_leg_length!r} must be a count and a finite length >= 0")
-    return MotionState(encoder, decoder, previous, velocity, leg, frames, *check_feet(state))
+    return MotionState(encoder, decoder, *joints, denoise, leg, frames, *check_feet(state))
 
 
-def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
+def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, denoiser=None):
     """Retarget one frame.
 
     Args:
@@ -108,6 +118,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
         target_tpose: (J, 3) float32 target T-pose joints, metres.
         smoothing: ``smoothing.Smoothing`` to smooth the source joints over time first, or
             None to use them as they are (what the torch reference does).
+        denoiser: ``denoise.DenoiserWeights`` to denoise them next (step 0'), or None (the
+            paper's pipeline); a stream keeps the one it started with.
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new MotionState (its ``previous_joints``: the source joints SMRM saw).
@@ -116,24 +128,29 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None):
     target_tpose = as_float32_array(target_tpose, "target_tpose", (NUM_JOINTS, 3))
     smoothing = check_smoothing(smoothing)
     if state is None:
-        state = initial_state(weights, source_joints)
-    seen, velocity = _smooth_kernel(source_joints, state.previous_joints,
-                                    state.joint_velocity, *_parameters(smoothing))
+        state = initial_state(weights, source_joints, denoiser)
+    if state.denoise_hidden.shape != _denoise_shape(denoiser):
+        raise ValueError(f"the stream's denoiser state has shape {state.denoise_hidden.shape}"
+                         f", this denoiser needs {_denoise_shape(denoiser)}: reset the stream "
+                         f"to change denoisers")
+    smoothed, velocity = _smooth_kernel(source_joints, state.smoothed_joints,
+                                        state.joint_velocity, *_parameters(smoothing))
+    seen, denoise_hidden = smoothed, state.denoise_hidden
+    if denoiser is not None:
+        denoise_hidden = denoise_hidden.copy()
+        seen = _denoise_kernel(denoiser, smoothed, state.smoothed_joints[0], denoise_hidden)
     encoder_hidden = state.encoder_hidden.copy()
     decoder_hidden = state.decoder_hidden.copy()
+    # At a stream's start the root has not moved: its previous place is its own (denoised).
+    previous_root = seen[0] if state.frames_seen == 0 else state.previous_joints[0]
     rotations, root, leg = _retarget_step_kernel(
-        weights, seen, target_tpose, encoder_hidden, decoder_hidden,
-        state.previous_joints[0], float(state.source_leg_length), state.frames_seen)
+        weights, seen, target_tpose, encoder_hidden, decoder_hidden, previous_root,
+        float(state.source_leg_length), state.frames_seen)
     new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
-                               previous_joints=seen, joint_velocity=velocity,
+                               previous_joints=seen, smoothed_joints=smoothed,
+                               joint_velocity=velocity, denoise_hidden=denoise_hidden,
                                source_leg_length=leg, frames_seen=state.frames_seen + 1)
     return rotations, root, new_state
-
-
-@kernel
-def _turn_about_up(x, y, z, sin, cos):
-    """Rotate the vector (x, y, z) about +Y by the angle with this sine and cosine."""
-    return cos * x + sin * z, y, cos * z - sin * x
 
 
 @kernel
@@ -147,30 +164,6 @@ def _leg_length(joints):
 
 
 @kernel
-def gru_layer_step(x, hidden, layer):
-    """One GRU cell step, torch's equations. x (1, in), hidden (1, H) -> new hidden (1, H)."""
-    h = hidden.shape[1]
-    gates_x = dense(x, Dense(layer.input_weight, layer.input_bias), False)       # (1, 3H)
-    gates_h = dense(hidden, Dense(layer.hidden_weight, layer.hidden_bias), False)
-    out = np.empty_like(hidden)
-    for k in range(h):
-        reset = sigmoid(gates_x[0, k] + gates_h[0, k])
-        update = sigmoid(gates_x[0, h + k] + gates_h[0, h + k])
-        new = np.tanh(gates_x[0, 2 * h + k] + reset * gates_h[0, 2 * h + k])
-        out[0, k] = (np.float32(1.0) - update) * new + update * hidden[0, k]
-    return out
-
-
-@kernel
-def _gru_step(x, hidden, layers):
-    """Stacked GRU step; updates ``hidden`` (layers, H) in place, returns the top output."""
-    for i in range(len(layers)):
-        x = gru_layer_step(x, hidden[i:i + 1], layers[i])
-        hidden[i] = x[0]
-    return x
-
-
-@kernel
 def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
                           decoder_hidden, previous_root, source_leg_length, frames_seen):
     """One frame, the module docstring's steps 1-5; updates the hidden states in place.
@@ -178,22 +171,14 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
     (float: a running mean over ``frames_seen`` frames before it)."""
     j = source_joints.shape[0]
     root = source_joints[0]
-    # 1. heading: facing = across x up, across from the hips and the shoulders
-    across = source_joints[1] - source_joints[2] + source_joints[16] - source_joints[17]
-    norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
-    sin, cos = -across[2] / norm, across[0] / norm
-    # 2. features in the heading frame (turned by -heading)
-    features = np.empty((1, 3 * j + 3), dtype=np.float32)
-    for k in range(j + 1):
-        v = source_joints[k] - root if k < j else root - previous_root
-        features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = _turn_about_up(
-            v[0], v[1], v[2], -sin, cos)
+    # 1-2. heading, and the features in the heading frame (turned by -heading)
+    features, sin, cos = heading_features(source_joints, previous_root)
     # 3. encoder, then decoder over [encoded, T-pose relative to its root]
-    encoded = _gru_step(features, encoder_hidden, weights.encoder)       # (1, H)
+    encoded = gru_step(features, encoder_hidden, weights.encoder)       # (1, H)
     decoder_input = np.empty((1, encoded.shape[1] + 3 * j), dtype=np.float32)
     decoder_input[0, :encoded.shape[1]] = encoded[0]
     decoder_input[0, encoded.shape[1]:] = (target_tpose - target_tpose[0]).ravel()
-    decoded = _gru_step(decoder_input, decoder_hidden, weights.decoder)
+    decoded = gru_step(decoder_input, decoder_hidden, weights.decoder)
     # 4. heads: unit quaternions and the root offset
     q = dense(decoded, weights.rotation_head, False).reshape(-1, 4)      # (J, 4)
     for k in range(q.shape[0]):
@@ -217,7 +202,7 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
     # (a degenerate source whose legs have no length must not divide by zero)
     scale = np.float32(np.float64(_leg_length(target_tpose)) / max(source_leg_length, 1e-6))
     out_root = np.empty(3, dtype=np.float32)
-    out_root[0], out_root[1], out_root[2] = _turn_about_up(offset[0], offset[1], offset[2],
+    out_root[0], out_root[1], out_root[2] = turn_about_up(offset[0], offset[1], offset[2],
                                                            sin, cos)
     for a in range(3):
         out_root[a] += scale * root[a]

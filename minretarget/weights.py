@@ -25,10 +25,11 @@ import numpy as np
 from .atomic import atomic_write
 from .config import ModelConfig
 from .formats.npz import load_npz
-from .nn import MLP, Dense
+from .nn import MLP, Dense, GRULayer
+from .denoise import DenoiserWeights
 from .refine import RefinerWeights
 from .skr import PointNetWeights, SKRWeights
-from .smrm import GRULayer, SMRMWeights
+from .smrm import SMRMWeights
 
 FORMAT_VERSION = 1
 DEFAULT_WEIGHTS = Path(__file__).parent / "data" / "default_weights.npz"
@@ -42,6 +43,7 @@ class Weights(NamedTuple):
     skin: MLP          # the skinning field
     metadata: dict
     refine: RefinerWeights = None    # the joint refiner, if the config has one
+    denoise: DenoiserWeights = None  # the skeleton denoiser, if the config has one
 
 
 class _Shape(tuple):
@@ -66,9 +68,9 @@ def _pointnet_template(in_width, config, out_width):
                            _mlp_template(widths[-1], config.skr_head_widths, out_width))
 
 
-def _gru_template(in_width, config):
-    h, layers = config.smrm_hidden, []
-    for i in range(config.smrm_layers):
+def _gru_template(in_width, h, depth):
+    layers = []
+    for i in range(depth):
         layers.append(GRULayer(_Shape((in_width if i == 0 else h, 3 * h)), _Shape((h, 3 * h)),
                                _Shape((3 * h,)), _Shape((3 * h,))))
     return tuple(layers)
@@ -80,7 +82,8 @@ def weight_template(config):
     skr = SKRWeights(_pointnet_template(3, config, 9),
                      _pointnet_template(w0, config, w0 * w0),
                      _pointnet_template(3, config, j * 3))
-    smrm = SMRMWeights(_gru_template(j * 3 + 3, config), _gru_template(h + j * 3, config),
+    depth = config.smrm_layers
+    smrm = SMRMWeights(_gru_template(j * 3 + 3, h, depth), _gru_template(h + j * 3, h, depth),
                        Dense(_Shape((h, j * 4)), _Shape((j * 4,))),
                        Dense(_Shape((h, 3)), _Shape((3,))), config.smrm_analytic_prior)
     skin = _mlp_template(j * 3, config.skin_widths, j)
@@ -90,6 +93,10 @@ def weight_template(config):
         stages["refine"] = RefinerWeights(
             _dense_chain(3, widths), _mlp_template(widths[-1] + 4 * j,
                                                    config.refine_head_widths, 3))
+    if config.denoises:
+        stages["denoise"] = DenoiserWeights(
+            _gru_template(j * 3 + 3, config.denoise_hidden, config.denoise_layers),
+            Dense(_Shape((config.denoise_hidden, j * 3)), _Shape((j * 3,))))
     return stages
 
 
@@ -121,7 +128,7 @@ def flatten_weights(weights):
     arrays = {"format_version": np.array(FORMAT_VERSION),
               "config": np.array(weights.config.to_json()),
               "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
-    for stage in ("skr", "smrm", "skin", "refine"):
+    for stage in ("skr", "smrm", "skin", "refine", "denoise"):
         if getattr(weights, stage) is not None:
             arrays.update(_leaves(getattr(weights, stage), stage))
     return arrays

@@ -34,7 +34,7 @@ def main():
     target, sources = random_stream(seed=0)
     export_weights(GOLDEN / "tiny_weights.npz", model.skr, model.smrm, model.skin,
                    metadata={"purpose": "tests: random tiny model", "seed": 0},
-                   refine=model.refine)
+                   refine=model.refine, denoise=model.denoise)
     outputs = reference_outputs(model, target, sources)
     counts = np.array([len(s) for s in sources])
     np.savez_compressed(GOLDEN / "tiny_stream.npz", target=target,

@@ -13,7 +13,7 @@ from training.models.pipeline import ReferenceRetargeter
 TINY_CONFIG = ModelConfig(skr_point_widths=(16, 24, 48), skr_head_widths=(32, 24),
                           smrm_hidden=32, smrm_layers=2, skin_widths=(32, 32),
                           refine_point_widths=(16, 24), refine_head_widths=(24,),
-                          refine_neighbours=40)
+                          refine_neighbours=40, denoise_hidden=16, denoise_layers=2)
 
 
 def random_reference(config=TINY_CONFIG, seed=0):

@@ -108,7 +108,8 @@ def test_array_sources_match_the_folder(inputs, folder_run, name):
 @pytest.mark.parametrize("option, setting", [("--no-smoothing", {"smoothing": None}),
                                              ("--no-foot-lock", {"foot_lock": None}),
                                              ("--mirror-source", {"mirror_source": True}),
-                                             ("--no-refine", {"refine": False})])
+                                             ("--no-refine", {"refine": False}),
+                                             ("--no-denoise", {"denoise": False})])
 def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, setting):
     """Each option changes the result as the API's setting does. The feet are held by an
     eager lock here: the tiny model's random toes would never plant with the defaults."""

@@ -71,8 +71,8 @@ def initial_state_for_feet():
     """A stream's state before its first frame; the GRU's part is not used here."""
     no_gru = np.zeros((1, 1), np.float32)
     joints, feet = np.zeros((NUM_JOINTS, 3), np.float32), np.zeros((2, 3), np.float32)
-    return MotionState(no_gru, no_gru, joints, joints, 0.0, 0, feet, feet, feet,
-                       np.zeros(2, bool))
+    return MotionState(no_gru, no_gru, joints, joints, joints, np.zeros((0, 0), np.float32),
+                       0.0, 0, feet, feet, feet, np.zeros(2, bool))
 
 
 def toes_of(rotations, root, tpose):

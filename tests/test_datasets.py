@@ -96,6 +96,25 @@ def test_training_samples_scale_the_root_by_hip_height(built, cache):
         assert np.linalg.norm(skr["points"][n] - skr["joints"][n, 0], axis=1).max() < body.height
 
 
+def test_sequences_are_whole_trials_posed_frame_after_frame(built, cache):
+    out, summary = built
+    for split in ("train", "val"):
+        data = _load(out / f"sequences_{split}.npz")
+        motions = MOTIONS[split]
+        np.testing.assert_array_equal(data["starts"], np.cumsum([0] + [len(m.rotations)
+                                                                     for m in motions]))
+        assert data["points"].shape == (data["starts"][-1], 64, 3)
+        for s, motion in enumerate(motions):
+            body = _body(summary, split, data["body"][s], cache)
+            frames = slice(data["starts"][s], data["starts"][s + 1])
+            root = motion.root * (body.hip_height / ACTOR_HIP_HEIGHT)
+            joints, _ = forward_kinematics(motion.rotations, root.astype(np.float32),
+                                           body.joints)
+            np.testing.assert_allclose(data["joints"][frames], joints, atol=1e-5)
+            reach = np.linalg.norm(data["points"][frames] - joints[:, :1], axis=-1).max()
+            assert reach < body.height
+
+
 def test_skin_points_correspond(built, cache):
     out, summary = built
     skin = _load(out / "skin_train.npz")
@@ -191,6 +210,12 @@ def test_only_smrm_with_longer_clips(built, cache, tmp_path):
     with pytest.raises(ValueError, match="unknown datasets"):
         build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, config, cache_dir=cache,
               show_progress=False, datasets=("smrm", "clips"))
+    # Another partial build into the same folder adds to its manifest.
+    build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, config, cache_dir=cache, show_progress=False,
+          datasets=("sequences",))
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["counts"]["smrm_train"] == 3 and manifest["counts"]["sequences_train"] == 90
+    assert set(manifest["files"]) == {p.name for p in tmp_path.glob("*.npz")}
 
 
 def test_augment_turns_about_y_and_shifts():

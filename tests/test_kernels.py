@@ -5,11 +5,12 @@ import pytest
 import twins
 from minretarget.conventions import NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, skinning_transforms
-from minretarget.nn import dense, mlp
+from minretarget.denoise import denoise_joints
+from minretarget.nn import dense, gru_layer_step, mlp
 from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.skin import linear_blend_skinning, skinning_weights
 from minretarget.skr import regress_joints
-from minretarget.smrm import gru_layer_step, initial_state, retarget_step
+from minretarget.smrm import initial_state, retarget_step
 
 
 def test_dense_and_mlp_match_twins(tiny_weights):
@@ -113,13 +114,7 @@ def test_retarget_step_matches_twin_and_streams(tiny_weights):
     previous_root, legs = frames[0, 0], []
     for t, joints in enumerate(frames):
         rotations, root, state = retarget_step(smrm, state, joints, tpose)
-        # The heading frame: +Z turned onto the facing direction (across x up).
-        across = joints[1] - joints[2] + joints[16] - joints[17]
-        facing = np.cross(across, [0.0, 1.0, 0.0])
-        facing /= np.linalg.norm(facing)
-        turn = np.array([[facing[2], 0, facing[0]], [0, 1, 0], [-facing[0], 0, facing[2]]])
-        x = np.concatenate([((joints - joints[0]) @ turn).ravel(),
-                            (joints[0] - previous_root) @ turn])[None]
+        x, turn = twins.heading_features(joints, previous_root)
         for i, layer in enumerate(smrm.encoder):
             x = hidden[0, i] = twins.gru_layer_step(x, hidden[0, i], layer)
         x = np.concatenate([x, (tpose - tpose[0]).ravel()[None]], axis=1)
@@ -136,6 +131,56 @@ def test_retarget_step_matches_twin_and_streams(tiny_weights):
                                    + turn @ twins.dense(x, smrm.root_head, False)[0], atol=1e-5)
         previous_root = joints[0]
     assert state.frames_seen == 3
+
+
+def denoised_stream(weights, frames):
+    hidden = np.zeros((len(weights.gru), weights.gru[0].hidden_weight.shape[0]), np.float32)
+    out, previous_root = [], frames[0, 0]
+    for joints in frames:
+        denoised, hidden = denoise_joints(weights, hidden, joints, previous_root)
+        out.append(denoised)
+        previous_root = joints[0]
+    return np.stack(out)
+
+
+def test_denoiser_matches_twin_and_turns_with_the_body(tiny_weights):
+    rng = np.random.default_rng(8)
+    frames = (rng.normal(0, 0.3, (1, NUM_JOINTS, 3))
+              + np.cumsum(rng.normal(0, 0.02, (12, NUM_JOINTS, 3)), axis=0)).astype(np.float32)
+    denoised = denoised_stream(tiny_weights.denoise, frames)
+    np.testing.assert_allclose(denoised, twins.denoise(frames, tiny_weights.denoise), atol=1e-5)
+    assert np.abs(denoised - frames).max() > 1e-3           # it does move the joints
+    # Turned about +Y and shifted, the stream's corrections turn and shift with it.
+    angle = 1.1
+    turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0],
+                     [-np.sin(angle), 0, np.cos(angle)]], np.float32)
+    moved = (frames @ turn.T + [3.0, 0.0, -2.0]).astype(np.float32)
+    np.testing.assert_allclose(denoised_stream(tiny_weights.denoise, moved),
+                               denoised @ turn.T + [3.0, 0.0, -2.0], atol=1e-4)
+
+
+def test_retarget_step_denoises_after_smoothing_and_before_smrm(tiny_weights):
+    """With a denoiser, a step is: smoothing, then the denoiser on the smoothed joints (its
+    previous root the smoothed one), then SMRM on the result as on clean joints."""
+    from minretarget.smoothing import Smoothing
+    rng = np.random.default_rng(9)
+    tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
+    frames = (rng.normal(0, 0.3, (1, NUM_JOINTS, 3))
+              + np.cumsum(rng.normal(0, 0.02, (8, NUM_JOINTS, 3)), axis=0)).astype(np.float32)
+    smoothed = twins.alpha_beta(frames, *Smoothing())
+    denoised = twins.denoise(smoothed.astype(np.float32), tiny_weights.denoise)
+    state = clean = None
+    for t in range(len(frames)):
+        rotations, root, state = retarget_step(tiny_weights.smrm, state, frames[t], tpose,
+                                               Smoothing(), tiny_weights.denoise)
+        want_rotations, want_root, clean = retarget_step(tiny_weights.smrm, clean,
+                                                         denoised[t], tpose)
+        np.testing.assert_allclose(state.previous_joints, denoised[t], atol=1e-5)
+        np.testing.assert_allclose(state.smoothed_joints, smoothed[t], atol=1e-5)
+        np.testing.assert_allclose(rotations, want_rotations, atol=1e-4)
+        np.testing.assert_allclose(root, want_root, atol=1e-4)
+    with pytest.raises(ValueError, match="reset the stream"):
+        retarget_step(tiny_weights.smrm, state, frames[0], tpose)     # started with one
 
 
 def twins_leg_length(joints):

@@ -11,6 +11,7 @@ from reference_models import TINY_CONFIG, random_reference, random_stream  # noq
 
 from minretarget.config import ModelConfig  # noqa: E402
 from minretarget.conventions import NUM_JOINTS  # noqa: E402
+from minretarget.denoise import denoise_joints  # noqa: E402
 from minretarget.refine import refine_joints  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
 from minretarget.skin import linear_blend_skinning, skinning_weights  # noqa: E402
@@ -29,7 +30,7 @@ def tiny_model():
 
 def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp_path):
     export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin,
-                   refine=tiny_model.refine)
+                   refine=tiny_model.refine, denoise=tiny_model.denoise)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None,      # as torch
                                          foot_lock=None, mirror_target=False)
     target, sources = random_stream(seed=1, frames=60)
@@ -50,7 +51,8 @@ def test_smrm_with_the_analytic_prior_matches_torch(tmp_path):
     """SMRM's corrections applied after the analytic rotations: the runtime's kernel (and its
     analytic kernel) against training.analytic and the torch model, end to end."""
     model = random_reference(dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True), 3)
-    export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine)
+    export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine,
+                   denoise=model.denoise)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None, foot_lock=None,
                                          mirror_target=False)
     assert retargeter.weights.config.smrm_analytic_prior and retargeter.weights.smrm.analytic_prior
@@ -72,7 +74,7 @@ def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights
     for key, value in want.items():
         np.testing.assert_allclose(golden[f"torch_{key}"], value, atol=1e-6, err_msg=key)
     exported = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin,
-                               refine=tiny_model.refine)
+                               refine=tiny_model.refine, denoise=tiny_model.denoise)
     flat = lambda weights: np.concatenate([np.ravel(a) for a in leaves(weights)])  # noqa: E731
     np.testing.assert_array_equal(flat(exported), flat(tiny_weights))
 
@@ -83,7 +85,8 @@ def leaves(weights):
                 yield from walk(child)
         else:                          # an array, or a flag such as SMRMWeights.analytic_prior
             yield np.asarray(tree, dtype=np.float32)
-    return [a for stage in (weights.skr, weights.smrm, weights.skin) for a in walk(stage)]
+    return [a for stage in (weights.skr, weights.smrm, weights.skin, weights.refine,
+                            weights.denoise) for a in walk(stage)]
 
 
 def test_torch_step_by_step_equals_whole_sequence(tiny_model):
@@ -166,10 +169,29 @@ def test_refiner_at_the_cpu_recipe_sizes_matches_torch():
         np.testing.assert_allclose(got, want, atol=TOLERANCE, err_msg=f"{count} points")
 
 
+def test_denoiser_at_the_cpu_recipe_sizes_matches_torch():
+    """The shipped denoiser's width: the runtime one frame at a time against torch over the
+    whole sequence at once, from a stream's start."""
+    from training.recipe import load_recipe
+    model = random_reference(load_recipe("cpu").model, seed=7)
+    weights = runtime_weights(model.skr, model.smrm, model.skin, denoise=model.denoise)
+    rng = np.random.default_rng(7)
+    joints = (np.cumsum(rng.normal(0, 0.02, (50, 1, 3)), axis=0)
+              + rng.normal(0, 0.3, (1, NUM_JOINTS, 3))).astype(np.float32)
+    with torch.no_grad():
+        want = model.denoise(torch.from_numpy(joints)[None])[0][0].numpy()
+    hidden = np.zeros((weights.config.denoise_layers, weights.config.denoise_hidden), np.float32)
+    previous_root = joints[0, 0]
+    for t, frame in enumerate(joints):
+        got, hidden = denoise_joints(weights.denoise, hidden, frame, previous_root)
+        np.testing.assert_allclose(got, want[t], atol=TOLERANCE, err_msg=f"frame {t}")
+        previous_root = frame[0]
+
+
 def test_batch_norm_is_folded_with_running_statistics(tiny_model):
     """Export folds eval-mode batch norm: the exported SKR equals torch in eval mode only."""
     weights = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin,
-                               refine=tiny_model.refine)
+                               refine=tiny_model.refine, denoise=tiny_model.denoise)
     points = np.random.default_rng(5).normal(size=(4, 200, 3)).astype(np.float32)
     with torch.no_grad():
         want = tiny_model.skr(torch.from_numpy(points)).numpy()

@@ -211,3 +211,33 @@ def test_skeletons_go_through_the_refiner_unless_refine_is_off(tiny_weights, tin
                                regress_joints(sources[0], tiny_weights.skr))
     with pytest.raises(ValueError, match="source points"):
         refined.skeleton(sources[0][:10])
+
+
+def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_stream):
+    """denoise=False, and weights without a denoiser, are the same pipeline; with it, SMRM
+    sees the denoiser's output of the smoothed skeleton, which the frames report; a state
+    from one pipeline is refused by the other."""
+    from minretarget.denoise import denoise_joints
+    target, sources, _ = tiny_stream
+    without = tiny_weights._replace(config=tiny_weights.config.without_denoiser(), denoise=None)
+    on, off, bare = (Retargeter(tiny_weights, warn=False), Retargeter(tiny_weights, warn=False,
+                                                                      denoise=False),
+                     Retargeter(without, warn=False))
+    for retargeter in (on, off, bare):
+        retargeter.set_target(target)
+    assert on.denoiser is tiny_weights.denoise and off.denoiser is None is bare.denoiser
+    hidden = np.zeros((2, tiny_weights.config.denoise_hidden), np.float32)
+    previous_root = None
+    for points in sources[:6]:
+        with_it, smoothed, plain = on.step(points), off.step(points), bare.step(points)
+        np.testing.assert_array_equal(smoothed.vertices, plain.vertices)
+        if previous_root is None:
+            previous_root = smoothed.source_joints[0]
+        want, hidden = denoise_joints(tiny_weights.denoise, hidden, smoothed.source_joints,
+                                      previous_root)
+        previous_root = smoothed.source_joints[0]
+        np.testing.assert_allclose(with_it.source_joints, want, atol=1e-6)
+        np.testing.assert_allclose(on.state.smoothed_joints, smoothed.source_joints, atol=1e-6)
+    assert np.abs(with_it.vertices - smoothed.vertices).max() > 1e-4
+    with pytest.raises(ValueError, match="state.denoise_hidden"):
+        on.state = off.state

@@ -87,8 +87,9 @@ def test_stream_smooths_what_smrm_sees(tiny_weights, tiny_stream):
     """retarget_step with smoothing = retarget_step without, on the filtered joints; the
     Retargeter reports them as source_joints; None gives the raw SKR joints."""
     target, sources, _ = tiny_stream
-    raw = Retargeter(tiny_weights, warn=False, smoothing=None, foot_lock=None)
-    smooth = Retargeter(tiny_weights, warn=False, foot_lock=None)     # SMRM's rotations alone
+    # SMRM's rotations alone: no foot lock, no denoiser (test_retargeter checks it).
+    raw = Retargeter(tiny_weights, warn=False, smoothing=None, foot_lock=None, denoise=False)
+    smooth = Retargeter(tiny_weights, warn=False, foot_lock=None, denoise=False)
     raw.set_target(target)
     smooth.set_target(target)
     raw_frames, smooth_frames = list(raw.run(sources[:20])), list(smooth.run(sources[:20]))

@@ -13,15 +13,17 @@ from training import kinematics  # noqa: E402
 from training.losses import rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
 from training.analytic import analytic_rotations  # noqa: E402
-from training.train import initial_models, main, retarget_ground_truth, source_noise  # noqa: E402
+from training.train import (initial_models, main, retarget_ground_truth,  # noqa: E402
+                            smoothed_skeletons, source_noise)
 
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
     "model": {"skr_point_widths": [8, 16, 32], "skr_head_widths": [16, 16], "smrm_hidden": 16,
               "smrm_layers": 1, "skin_widths": [16], "refine_point_widths": [8, 16],
-              "refine_head_widths": [16], "refine_neighbours": 20},
+              "refine_head_widths": [16], "refine_neighbours": 20, "denoise_hidden": 8},
     "skr": {"steps": 6, "batch_size": 4, "points": 80, "eval_every": 3},
     "refine": {"steps": 4, "batch_size": 4, "min_points": 60, "eval_every": 2},
+    "denoise": {"steps": 4, "batch_size": 3, "window": 8, "eval_every": 2},
     "skin": {"steps": 4, "batch_size": 2, "points": 50, "eval_every": 2},
     "smrm": {"steps": 4, "batch_size": 3, "eval_every": 2, "discriminator_width": 8},
 }
@@ -69,6 +71,16 @@ def write_datasets(directory, rng):
                  joints=posed(clip_rotations, clip_root, bodies[body][:, None]),
                  tpose_joints=bodies[body], body=body.astype(np.int32),
                  bodies_tpose_joints=bodies)
+        # Whole trials of 9 to 14 frames, one after another.
+        starts = np.cumsum([0] + list(rng.integers(9, 15, size=3)))
+        trials = rng.integers(3, size=3)
+        frames = random_quaternions(rng, (starts[-1], NUM_JOINTS))
+        root = np.cumsum(rng.normal(0, 0.02, (starts[-1], 3)), axis=0).astype(np.float32)
+        joints = posed(frames, root, np.repeat(bodies[trials], np.diff(starts), axis=0))
+        np.savez(directory / f"sequences_{split}.npz", joints=joints, starts=starts,
+                 body=trials.astype(np.int32),
+                 points=(joints[:, rng.integers(NUM_JOINTS, size=100)]
+                         + rng.normal(0, 0.05, (starts[-1], 100, 3))).astype(np.float32))
 
 
 @pytest.fixture(scope="module")
@@ -83,14 +95,14 @@ def run(tmp_path_factory):
 
 def test_all_stages_train_log_and_export_loadable_weights(run):
     out = run / "run"
-    for stage in ("skr", "refine", "skin", "smrm"):
+    for stage in ("skr", "refine", "denoise", "skin", "smrm"):
         rows = (out / f"{stage}.csv").read_text().splitlines()
         assert len(rows) == 3                     # header + two evaluations
         assert (out / f"{stage}.png").stat().st_size > 0
     retargeter = Retargeter.from_weights(out / "weights.npz")
     assert retargeter.weights.metadata["recipe"]["name"] == "tiny"
     assert retargeter.weights.config.smrm_layers == 1
-    assert retargeter.weights.refine is not None
+    assert retargeter.weights.refine is not None and retargeter.weights.denoise is not None
     retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))
     frame = retargeter.step(np.random.default_rng(2).normal(size=(100, 3)))
     assert np.isfinite(frame.vertices).all()
@@ -121,7 +133,7 @@ def test_init_trains_listed_stages_and_keeps_the_others(run, tmp_path):
     after = np.load(tmp_path / "tuned" / "weights.npz")
     assert sorted(before.files) == sorted(after.files)
     for key in before.files:
-        if key.startswith(("skr.", "skin.", "refine.")):
+        if key.startswith(("skr.", "skin.", "refine.", "denoise.")):
             np.testing.assert_allclose(after[key], before[key], rtol=1e-6, atol=1e-7,
                                        err_msg=key)
     assert any(not np.array_equal(after[k], before[k]) for k in before.files
@@ -149,12 +161,21 @@ def test_analytic_prior_fine_tunes_from_weights_without_it(run, tmp_path):
     assert load_weights(tmp_path / "prior" / "weights.npz").config.smrm_analytic_prior
 
 
+def weights_without(run, tmp_path, part):
+    """The ``all`` run's weights (as loaded) and the same saved to tmp_path/old.npz without
+    ``part`` ("refine" or "denoise"), as files from before it were."""
+    whole = load_weights(run / "run" / "weights.npz")
+    config = {"refine": whole.config.without_refiner,
+              "denoise": whole.config.without_denoiser}[part]()
+    old = whole._replace(config=config, **{part: None})
+    save_weights(tmp_path / "old.npz", old)
+    return whole, old
+
+
 def test_refiner_trains_on_weights_from_before_it(run, tmp_path):
     """--init with a file that has no refiner (as the shipped weights before it): ``refine``
     trains a fresh one on that file's SKR and the export holds both."""
-    whole = load_weights(run / "run" / "weights.npz")
-    old = whole._replace(config=whole.config.without_refiner(), refine=None)
-    save_weights(tmp_path / "old.npz", old)
+    whole, old = weights_without(run, tmp_path, "refine")
     main(["refine", "--init", str(tmp_path / "old.npz"), "--recipe", str(run / "tiny.json"),
           "--data", str(run), "--out", str(tmp_path / "refined"), "--threads", "1"])
     new = load_weights(tmp_path / "refined" / "weights.npz")
@@ -162,19 +183,48 @@ def test_refiner_trains_on_weights_from_before_it(run, tmp_path):
     before, after = flatten_weights(old), flatten_weights(new)
     assert set(after) - set(before) == {k for k in after if k.startswith("refine.")} != set()
     for key, value in before.items():
-        if key.startswith(("skr.", "smrm.", "skin.")):
+        if key.startswith(("skr.", "smrm.", "skin.", "denoise.")):
             np.testing.assert_allclose(after[key], value, rtol=1e-6, atol=1e-7, err_msg=key)
     rows = (tmp_path / "refined" / "refine.csv").read_text().splitlines()
     assert rows[0].split(",")[2:] == ["loss", "val_mpjpe", "val_mpjpe_skr", "val_tpose_mpjpe",
                                       "val_tpose_mpjpe_skr"]
 
 
+def test_denoiser_trains_on_weights_from_before_it(run, tmp_path):
+    """denoise --init <file without a denoiser> adds one and keeps every other array; its log
+    has the smoothed skeleton's errors it must beat."""
+    whole, _ = weights_without(run, tmp_path, "denoise")
+    main(["denoise", "--init", str(tmp_path / "old.npz"), "--recipe", str(run / "tiny.json"),
+          "--data", str(run), "--out", str(tmp_path / "denoised"), "--threads", "1"])
+    new = load_weights(tmp_path / "denoised" / "weights.npz")
+    assert new.config == whole.config and new.denoise is not None
+    before, after = np.load(tmp_path / "old.npz"), np.load(tmp_path / "denoised" / "weights.npz")
+    assert set(after.files) - set(before.files) == {k for k in after.files
+                                                    if k.startswith("denoise.")} != set()
+    for key in set(before.files) - {"metadata", "config"}:
+        np.testing.assert_array_equal(after[key], before[key], err_msg=key)
+    header = (tmp_path / "denoised" / "denoise.csv").read_text().splitlines()[0].split(",")
+    assert {"val_mpjpe", "val_acc", "val_mpjpe_smoothed", "val_acc_smoothed"} <= set(header)
+
+
+def test_denoiser_learns_from_the_skeletons_the_runtime_smooths(run):
+    """The stage's inputs are what a Retargeter hands the denoiser: SKR, refiner, smoothing
+    from each trial's first frame."""
+    weights = load_weights(run / "run" / "weights.npz")
+    data = np.load(run / "sequences_val.npz")
+    got = smoothed_skeletons(weights.skr, weights.refine, weights.config.refine_neighbours,
+                             torch.from_numpy(data["points"]), torch.from_numpy(data["starts"]))
+    retargeter = Retargeter(weights, warn=False, foot_lock=None, denoise=False)
+    retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))
+    for a, b in zip(data["starts"][:-1], data["starts"][1:]):
+        want = np.stack([f.source_joints for f in retargeter.run(data["points"][a:b])])
+        np.testing.assert_allclose(got[a:b].numpy(), want, atol=1e-5)
+
+
 def test_an_untrained_refiner_is_never_exported_nor_trained_on_a_random_skr(run, tmp_path):
     """smrm --init <file without a refiner> exports no refiner (it would be random); refine
     alone without a trained SKR is refused."""
-    whole = load_weights(run / "run" / "weights.npz")
-    save_weights(tmp_path / "old.npz", whole._replace(config=whole.config.without_refiner(),
-                                                      refine=None))
+    weights_without(run, tmp_path, "refine")
     main(["smrm", "--init", str(tmp_path / "old.npz"), "--recipe", str(run / "tiny.json"),
           "--data", str(run), "--out", str(tmp_path / "tuned"), "--threads", "1"])
     tuned = load_weights(tmp_path / "tuned" / "weights.npz")

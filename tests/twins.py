@@ -87,6 +87,31 @@ def gru_layer_step(x, h, layer):
     return (1 - update) * n + update * h
 
 
+def heading_features(joints, previous_root):
+    """(J, 3) joints -> SMRM's and the denoiser's input (1, J*3 + 3) and the heading turn
+    (3, 3): the turn about +Y taking +Z onto the facing direction (across x up)."""
+    across = joints[1] - joints[2] + joints[16] - joints[17]
+    facing = np.cross(across, [0.0, 1.0, 0.0])
+    facing /= np.linalg.norm(facing)
+    turn = np.array([[facing[2], 0, facing[0]], [0, 1, 0], [-facing[0], 0, facing[2]]])
+    features = np.concatenate([((joints - joints[0]) @ turn).ravel(),
+                               (joints[0] - previous_root) @ turn])[None]
+    return features, turn
+
+
+def denoise(frames, weights):
+    """(T, J, 3) a stream's source joints -> the denoiser's output (T, J, 3), from zeros."""
+    hidden = np.zeros((len(weights.gru), 1, weights.gru[0].hidden_weight.shape[0]))
+    out, previous_root = [], frames[0, 0]
+    for joints in frames:
+        x, turn = heading_features(joints, previous_root)
+        for i, layer in enumerate(weights.gru):
+            x = hidden[i] = gru_layer_step(x, hidden[i], layer)
+        out.append(joints + dense(x, weights.head, False).reshape(-1, 3) @ turn.T)
+        previous_root = joints[0]
+    return np.stack(out)
+
+
 def skinning_weights(points, tpose_joints, weights):
     """(V, 3), (J, 3) -> (V, J) softmax of the MLP of the offsets."""
     offsets = (points[:, None, :] - tpose_joints[None, :, :]).reshape(len(points), -1)

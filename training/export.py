@@ -9,10 +9,11 @@ import dataclasses
 import numpy as np
 import torch
 
-from minretarget.nn import MLP, Dense
+from minretarget.denoise import DenoiserWeights
+from minretarget.nn import MLP, Dense, GRULayer
 from minretarget.refine import RefinerWeights
 from minretarget.skr import PointNetWeights, SKRWeights
-from minretarget.smrm import GRULayer, SMRMWeights
+from minretarget.smrm import SMRMWeights
 from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
 
 
@@ -68,26 +69,35 @@ def skr_runtime_weights(skr):
         PointNetWeights(_point_layers(skr.first) + _point_layers(skr.rest), _head(skr.head)))
 
 
-def runtime_weights(skr, smrm, skin, metadata=None, refine=None):
+def refine_runtime_weights(refine):
+    """JointRefiner -> the runtime's RefinerWeights."""
+    return RefinerWeights(_linears(refine.point),
+                          MLP(_linears(refine.hidden), _dense(refine.output)))
+
+
+def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
     """The torch modules -> minretarget Weights (checked against their config); ``refine``
-    the JointRefiner, if the config has one."""
+    the JointRefiner and ``denoise`` the SkeletonDenoiser, if the config has them."""
     config = smrm.config if refine is not None else smrm.config.without_refiner()
+    config = config if denoise is not None else config.without_denoiser()
     skr_weights = skr_runtime_weights(skr)
     smrm_weights = SMRMWeights(_gru(smrm.encoder), _gru(smrm.decoder),
                                _dense(smrm.rotation_head), _dense(smrm.root_head),
                                smrm.config.smrm_analytic_prior)
     skin_weights = MLP(_linears(skin.hidden), _dense(skin.output))
-    refine_weights = None if refine is None else RefinerWeights(
-        _linears(refine.point), MLP(_linears(refine.hidden), _dense(refine.output)))
+    refine_weights = None if refine is None else refine_runtime_weights(refine)
+    denoise_weights = None if denoise is None else DenoiserWeights(_gru(denoise.gru),
+                                                                   _dense(denoise.head))
     weights = Weights(config, skr_weights, smrm_weights, skin_weights, dict(metadata or {}),
-                      refine_weights)
+                      refine_weights, denoise_weights)
     # Round-trip through the loader's checks so a wrong export fails here, not at load.
     return weights_from_arrays(flatten_weights(weights), source="exported weights")
 
 
-def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32, refine=None):
+def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32, refine=None,
+                   denoise=None):
     """Write the torch modules as one runtime weights file at ``path``."""
-    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine), dtype=dtype)
+    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine, denoise), dtype=dtype)
 
 
 
@@ -120,7 +130,16 @@ def _import_linears(sequential, denses):
         _set_dense(linear, dense)
 
 
-def import_weights(weights, skr, smrm, skin, refine=None):
+def _import_gru(gru, layers):
+    with torch.no_grad():
+        for i, layer in enumerate(layers):
+            for name, array in zip(("weight_ih", "weight_hh", "bias_ih", "bias_hh"),
+                                   (layer.input_weight.T, layer.hidden_weight.T,
+                                    layer.input_bias, layer.hidden_bias)):
+                getattr(gru, f"{name}_l{i}").copy_(torch.from_numpy(array.copy()))
+
+
+def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     """Load runtime Weights into the torch modules, in place (their config must match).
 
     Folded batch norms become ``nn.Identity``, so the imported SKR computes exactly what
@@ -133,6 +152,8 @@ def import_weights(weights, skr, smrm, skin, refine=None):
                     for c in (smrm.config, weights.config))
     if refine is None:
         mine, theirs = mine.without_refiner(), theirs.without_refiner()
+    if denoise is None:
+        mine, theirs = mine.without_denoiser(), theirs.without_denoiser()
     if mine != theirs:
         raise ValueError(f"the weights' config {weights.config} is not the modules' "
                          f"{smrm.config}")
@@ -144,14 +165,8 @@ def import_weights(weights, skr, smrm, skin, refine=None):
     _import_point_layers(skr.first, weights.skr.regressor.point[:first])
     _import_point_layers(skr.rest, weights.skr.regressor.point[first:])
     _import_head(skr.head, weights.skr.regressor.head)
-    with torch.no_grad():
-        for gru, layers in ((smrm.encoder, weights.smrm.encoder),
-                            (smrm.decoder, weights.smrm.decoder)):
-            for i, layer in enumerate(layers):
-                for name, array in zip(("weight_ih", "weight_hh", "bias_ih", "bias_hh"),
-                                       (layer.input_weight.T, layer.hidden_weight.T,
-                                        layer.input_bias, layer.hidden_bias)):
-                    getattr(gru, f"{name}_l{i}").copy_(torch.from_numpy(array.copy()))
+    _import_gru(smrm.encoder, weights.smrm.encoder)
+    _import_gru(smrm.decoder, weights.smrm.decoder)
     _set_dense(smrm.rotation_head, weights.smrm.rotation_head)
     _set_dense(smrm.root_head, weights.smrm.root_head)
     _import_linears(skin.hidden, weights.skin.hidden)
@@ -160,3 +175,6 @@ def import_weights(weights, skr, smrm, skin, refine=None):
         _import_linears(refine.point, weights.refine.point)
         _import_linears(refine.hidden, weights.refine.head.hidden)
         _set_dense(refine.output, weights.refine.head.output)
+    if denoise is not None:
+        _import_gru(denoise.gru, weights.denoise.gru)
+        _set_dense(denoise.head, weights.denoise.head)

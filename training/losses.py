@@ -77,3 +77,12 @@ def discriminator_loss(discriminator, real_joints, fake_joints):
     real = discriminator(*discriminator_input(real_joints))
     fake = discriminator(*discriminator_input(fake_joints.detach()))
     return ((real - 1) ** 2).mean() + (fake ** 2).mean()
+
+
+def denoise_losses(denoised, joints):
+    """(B, T, J, 3) denoised and true joints -> (mean joint distance, mean distance of their
+    accelerations), metres and metres per frame^2 (the benchmark's MPJPE and Acc)."""
+    def acceleration(x):
+        return x[:, 2:] - 2 * x[:, 1:-1] + x[:, :-2]
+    return ((denoised - joints).norm(dim=-1).mean(),
+            (acceleration(denoised) - acceleration(joints)).norm(dim=-1).mean())

@@ -34,6 +34,16 @@ class RefineStage:
 
 
 @dataclasses.dataclass(frozen=True)
+class DenoiseStage:
+    steps: int = 3000
+    batch_size: int = 64
+    learning_rate: float = 1e-3
+    window: int = 64             # frames of a training window (random, inside one trial)
+    acceleration: float = 2.0    # weight of the acceleration error against the joint error
+    eval_every: int = 250
+
+
+@dataclasses.dataclass(frozen=True)
 class SKINStage:
     steps: int = 10_000
     batch_size: int = 8
@@ -75,6 +85,7 @@ class Recipe:
     model: ModelConfig = ModelConfig()
     skr: SKRStage = SKRStage()
     refine: RefineStage = RefineStage()
+    denoise: DenoiseStage = DenoiseStage()
     skin: SKINStage = SKINStage()
     smrm: SMRMStage = SMRMStage()
 

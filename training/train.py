@@ -1,6 +1,7 @@
 """Train the networks stage by stage, then export the runtime's weights file.
 
-    python -m training.train {skr,refine,skin,smrm,all} --recipe cpu --data data --out runs/cpu
+    python -m training.train {skr,refine,denoise,skin,smrm,all} --recipe cpu --data data
+                             --out runs/cpu
                              [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
                              [--scratch STAGES] [--set KEY=VALUE ...]
 
@@ -29,16 +30,22 @@ import torch
 from tqdm import tqdm
 
 from minretarget.atomic import atomic_write
+from minretarget.conventions import MIRROR, NUM_JOINTS
+from minretarget.refine import refine_joints
 from minretarget.skr import regress_joints
+from minretarget.smoothing import Smoothing, smooth_joints
 from minretarget.weights import load_weights
-from training.export import export_weights, import_weights, skr_runtime_weights
+from training.export import (export_weights, import_weights, refine_runtime_weights,
+                             skr_runtime_weights)
 from training.kinematics import forward_kinematics
-from training.losses import discriminator_loss, skin_loss, skr_loss, smrm_losses
+from training.losses import (denoise_losses, discriminator_loss, skin_loss, skr_loss,
+                             smrm_losses)
 from training.models import (JointRefiner, MotionDiscriminator, MotionRetargeter,
-                             SkeletonRegressor, SkinningField)
+                             SkeletonDenoiser, SkeletonRegressor, SkinningField)
 from training.recipe import load_recipe
 
-STAGES = ("skr", "refine", "skin", "smrm")   # refine only where the config has a refiner
+# refine and denoise only where the config has a refiner and a denoiser
+STAGES = ("skr", "refine", "denoise", "skin", "smrm")
 VALIDATION_LIMIT = 2048   # validation samples per evaluation, to bound its time
 
 
@@ -222,7 +229,7 @@ def joint_errors(data, name, predict):
 def initial_models(recipe, init=None, scratch=()):
     """The networks, freshly initialised or, with ``init`` (runtime Weights), loaded from an
     exported file (its batch norms folded, see ``export.import_weights``) except the stages
-    named in ``scratch`` and a refiner ``init`` does not have, which stay fresh."""
+    named in ``scratch`` and a refiner or denoiser ``init`` does not have, which stay fresh."""
     def fresh():
         models = {"skr": SkeletonRegressor(recipe.model), "smrm": MotionRetargeter(recipe.model),
                   "skin": SkinningField(recipe.model)}
@@ -230,14 +237,20 @@ def initial_models(recipe, init=None, scratch=()):
             with torch.random.fork_rng(devices=[]):   # the other networks' draws stay as before
                 torch.manual_seed(recipe.seed + 3)
                 models["refine"] = JointRefiner(recipe.model)
+        if recipe.model.denoises:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(recipe.seed + 4)
+                models["denoise"] = SkeletonDenoiser(recipe.model)
         return models
     models = fresh()
     if init is not None:
         with torch.random.fork_rng(devices=[]):     # leave later draws (the discriminator) alone
             loaded = fresh()
-        if init.refine is None:                     # the refiner starts fresh
-            loaded.pop("refine", None)
-        import_weights(init, loaded["skr"], loaded["smrm"], loaded["skin"], loaded.get("refine"))
+        for name in ("refine", "denoise"):          # what init lacks starts fresh
+            if getattr(init, name) is None:
+                loaded.pop(name, None)
+        import_weights(init, loaded["skr"], loaded["smrm"], loaded["skin"], loaded.get("refine"),
+                       loaded.get("denoise"))
         if recipe.model.smrm_analytic_prior and not init.config.smrm_analytic_prior:
             loaded["smrm"].reset_rotation_head()   # its rotations become corrections: start at 0
         models.update({name: loaded[name] for name in loaded if name not in scratch})
@@ -325,6 +338,92 @@ def train_refine(recipe, data_dir, run_dir, device, resume, stop_at=None, model=
                 **joint_errors(val, "val_mpjpe_skr", skr_alone),
                 **joint_errors(tpose_val, "val_tpose_mpjpe", refined),
                 **joint_errors(tpose_val, "val_tpose_mpjpe_skr", skr_alone)}
+
+    return model, stage.run(train_step, evaluate, resume, stop_at)
+
+
+def smoothed_skeletons(skr_weights, refine_weights, neighbours, points, starts):
+    """The source skeletons SMRM's smoothing hands the denoiser at run time: the runtime's SKR
+    (then the refiner, if any) on each cloud (N, P, 3), then each trial (frames
+    starts[s]:starts[s+1]) through ``smoothing.Smoothing()`` from its first frame. (N, J, 3)."""
+    clouds = points.cpu().numpy()
+    joints = np.empty((len(clouds), NUM_JOINTS, 3), np.float32)
+    for start in range(0, len(clouds), 1024):
+        chunk = clouds[start:start + 1024]
+        skeleton = regress_joints(chunk, skr_weights)
+        if refine_weights is not None:
+            skeleton = refine_joints(chunk, skeleton, refine_weights, neighbours)
+        joints[start:start + len(chunk)] = skeleton
+    starts = starts.cpu().numpy()
+    for a, b in zip(starts[:-1], starts[1:]):
+        previous, velocity = joints[a], np.zeros_like(joints[a])
+        for t in range(a, b):
+            previous, velocity = smooth_joints(joints[t], previous, velocity, Smoothing())
+            joints[t] = previous
+    return torch.from_numpy(joints).to(points.device)
+
+
+def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None,
+                  skr=None, refine=None):
+    """The skeleton denoiser on the smoothed skeletons of the trained SKR (and refiner) of
+    whole trials (``sequences_*.npz``, computed once, as the runtime sees them): the mean
+    joint error plus ``acceleration`` times the mean acceleration error, against the true
+    joints, on random windows; half of them mirrored (left and right swapped)."""
+    stage_recipe = recipe.denoise
+    skr_weights = skr_runtime_weights(skr.cpu().eval())
+    refine_weights = None if refine is None else refine_runtime_weights(refine.cpu().eval())
+    splits = {}
+    for split in ("train", "val"):
+        data = load_split(data_dir, f"sequences_{split}", device)
+        data["skeleton"] = smoothed_skeletons(skr_weights, refine_weights,
+                                              recipe.model.refine_neighbours, data.pop("points"),
+                                              data["starts"])
+        splits[split] = data
+    train, val = splits["train"], splits["val"]
+    starts = train["starts"].cpu()
+    lengths = starts[1:] - starts[:-1]
+    usable = torch.nonzero(lengths >= stage_recipe.window)[:, 0]
+    if not len(usable):
+        raise ValueError(f"denoise.window {stage_recipe.window}: no training trial is that long")
+    model = (model or SkeletonDenoiser(recipe.model)).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
+    stage = Stage("denoise", run_dir, {"denoise": model}, {"denoise": optimizer},
+                  stage_recipe.steps, stage_recipe.eval_every, recipe.seed + 4)
+    mirror = torch.tensor(MIRROR)
+    flip = torch.tensor([-1.0, 1.0, 1.0], device=device)
+
+    def train_step(stage):
+        trial = usable[stage.batch(len(usable), stage_recipe.batch_size)]
+        offset = (torch.rand(len(trial), generator=stage.generator)
+                  * (lengths[trial] - stage_recipe.window + 1)).long()
+        frames = (starts[trial] + offset)[:, None] + torch.arange(stage_recipe.window)
+        skeleton, joints = train["skeleton"][frames], train["joints"][frames]
+        mirrored = (torch.rand(len(trial), generator=stage.generator) < 0.5).to(device)
+        turn = torch.where(mirrored[:, None, None, None], flip, 1.0)
+        skeleton = torch.where(mirrored[:, None, None, None], skeleton[:, :, mirror], skeleton)
+        joints = torch.where(mirrored[:, None, None, None], joints[:, :, mirror], joints)
+        position, acceleration = denoise_losses(model(skeleton * turn)[0], joints * turn)
+        loss = position + stage_recipe.acceleration * acceleration
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return {"loss": loss.item(), "position": position.item(),
+                "acceleration": acceleration.item()}
+
+    def evaluate():
+        """Each validation trial whole, from a stream's start, as the runtime plays it."""
+        totals = torch.zeros(4)
+        bounds = val["starts"].cpu().tolist()
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b - a < 3:
+                continue
+            skeleton, joints = val["skeleton"][a:b][None], val["joints"][a:b][None]
+            denoised = model(skeleton)[0]
+            totals += (b - a) * torch.tensor([*map(float, denoise_losses(denoised, joints)),
+                                              *map(float, denoise_losses(skeleton, joints))])
+        totals /= bounds[-1]
+        return dict(zip(("val_mpjpe", "val_acc", "val_mpjpe_smoothed", "val_acc_smoothed"),
+                        totals.tolist()))
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
@@ -499,7 +598,8 @@ def stage_list(text):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", type=stage_list,
-                        help="skr, refine, skin, smrm, a comma-separated list of them, or all")
+                        help="skr, refine, denoise, skin, smrm, a comma-separated list of "
+                             "them, or all")
     parser.add_argument("--recipe", required=True,
                         help="a recipe JSON file, or the name of one in training/recipes")
     parser.add_argument("--data", default="data", help="the directory of the built datasets")
@@ -527,19 +627,25 @@ def main(argv=None):
     (run_dir / "recipe.json").write_text(recipe.to_json())
     torch.manual_seed(recipe.seed)
     trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
-                "refine": lambda *a: train_refine(*a, skr=models["skr"])}
+                "refine": lambda *a: train_refine(*a, skr=models["skr"]),
+                "denoise": lambda *a: train_denoise(*a, skr=models["skr"],
+                                                    refine=models.get("refine"))}
     init = load_weights(args.init) if args.init else None
-    # The recipe's own stages: refine only if its model has a refiner.
-    own = tuple(n for n in STAGES if n != "refine" or recipe.model.refines)
+    # The recipe's own stages: refine and denoise only if its model has them.
+    optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}
+    own = tuple(n for n in STAGES if optional.get(n, True))
     stages = tuple(n for n in args.stage if n in own)
     if not stages:
-        parser.error("the recipe's model has no refiner (model.refine_point_widths)")
-    if "refine" in stages and "skr" not in stages and init is None:
-        parser.error("the refiner learns a trained SKR's errors: train skr with it "
-                     "(skr,refine) or start from a trained SKR (--init WEIGHTS)")
-    if "skr" in stages and "refine" not in stages and init is not None and init.refine is not None:
-        print("warning: SKR is retrained but not the refiner, which learned the old SKR's "
-              "errors; train skr,refine to retrain both")
+        parser.error("the recipe's model has no refiner (model.refine_point_widths) or no "
+                     "denoiser (model.denoise_hidden)")
+    for name, what in (("refine", "refiner"), ("denoise", "denoiser")):
+        if name in stages and "skr" not in stages and init is None:
+            parser.error(f"the {what} learns a trained SKR's errors: train skr with it "
+                         f"(skr,{name}) or start from a trained SKR (--init WEIGHTS)")
+        if ("skr" in stages and name not in stages and init is not None
+                and getattr(init, name) is not None):
+            print(f"warning: SKR is retrained but not the {what}, which learned the old "
+                  f"SKR's errors; train skr,{name} to retrain both")
     models, finished = initial_models(recipe, init, args.scratch), True
     for name in stages:
         start = time.perf_counter()
@@ -548,14 +654,17 @@ def main(argv=None):
         print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
         finished = finished and done
     if finished and (stages == own or init is not None):
-        # A refiner neither trained here nor loaded from --init is random: not exported.
-        trained = "refine" in stages or (init is not None and init.refine is not None
-                                         and "refine" not in args.scratch)
+        # A refiner or denoiser neither trained here nor loaded from --init is random: not
+        # exported.
+        def trained(name):
+            return optional[name] and (name in stages or (
+                init is not None and getattr(init, name) is not None
+                and name not in args.scratch))
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
                        metadata=provenance(recipe, args.data, init),
-                       refine=models["refine"].cpu() if trained and recipe.model.refines
-                       else None)
+                       refine=models["refine"].cpu() if trained("refine") else None,
+                       denoise=models["denoise"].cpu() if trained("denoise") else None)
         print(f"exported {path}")
 
 

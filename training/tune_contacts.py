@@ -5,8 +5,8 @@
 Validation only, never the test split: trials of the held-out training subjects (06
 basketball, 09 running and walking), at most 240 frames each, played on held-out validation
 bodies (source and target differ), sampled into clouds as the test benchmark does. The
-shipped runtime (smoothing on, foot lock off) retargets each once; its rotations are cached in
-``--cache``, then every setting of a grid runs ``contacts.plant_feet`` over them.
+shipped runtime (smoothing and denoiser on, foot lock off) retargets each once; its rotations
+are cached in ``--cache``, then every setting of a grid runs ``contacts.plant_feet`` over them.
 For each setting it prints the toe speed over the ground truth's contacts (pooled over those
 steps, m/s; ``benchmarks/accuracy.py``'s foot-sliding table), MPJPE, PA-MPJPE and Acc of
 the joints (metres). The choice: the least PA-MPJPE among the settings whose toes move no

@@ -42,7 +42,8 @@ def _build(args):
           f"{counts['motion_frames_val']} val frames at 30 fps; actor hip height "
           f"{actor_hip_height:.3f} m")
     print(f"  bodies: {counts['bodies_train']} train, {counts['bodies_val']} val, 8 test")
-    for kind, unit in (("skr", "frames"), ("skin", "samples"), ("smrm", "clips")):
+    for kind, unit in (("skr", "frames"), ("skin", "samples"), ("smrm", "clips"),
+                       ("sequences", "frames")):
         if kind not in args.only:
             continue
         sizes = [summary["files"][f"{kind}_{s}.npz"] for s in ("train", "val")]

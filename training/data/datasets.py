@@ -22,6 +22,12 @@ retargeting.
     joints (N, C, J, 3) float32, rotations (N, C, J, 4) float32, root (N, C, 3) float32,
     tpose_joints (N, J, 3) float32 (the clip's body), body (N,) int32, and
     bodies_tpose_joints (B, J, 3) float32: every body of the split, to draw other targets from.
+``sequences_{train,val}.npz``: whole trials as clouds, frame after frame, for the skeleton
+denoiser (it learns how SKR's error moves over time): each trial of the split on a random
+body of the split, not augmented (as the test sequences are).
+    points (N, P, 3) float32: the trials' frames one after another, a fresh sample each.
+    joints (N, J, 3) float32.    starts (S + 1,) int64: trial s is frames starts[s]:starts[s+1].
+    body (S,) int32.
 ``test/<sequence>.npz``: one whole test trial (the DESIGN.md benchmark), source -> target.
     source_points (T, P, 3) float32: a fresh sample and order every frame.
     source_joints (T, J, 3), source_root (T, 3), source_tpose_joints (J, 3) float32.
@@ -284,6 +290,24 @@ def smrm_clips(frames, bodies, stride, length, actor_hip_height, rng, max_shift,
             "bodies_tpose_joints": np.stack([m.joints for m in bodies])}
 
 
+def trial_sequences(frames, bodies, points, actor_hip_height, rng, progress=None):
+    """Every trial of ``frames`` played whole on a random body; see the module docstring."""
+    count = int(frames.starts[-1])
+    body = rng.integers(len(bodies), size=len(frames.starts) - 1).astype(np.int32)
+    out = {"points": np.empty((count, points, 3), np.float32),
+           "joints": np.empty((count, NUM_JOINTS, 3), np.float32),
+           "starts": frames.starts.astype(np.int64), "body": body}
+    for trial, model in enumerate(bodies[b] for b in body):
+        scale = model.hip_height / actor_hip_height
+        for chunk in _chunks(np.arange(frames.starts[trial], frames.starts[trial + 1])):
+            vertices, out["joints"][chunk] = pose_body(model, frames.rotations[chunk],
+                                                       frames.root[chunk] * scale)
+            out["points"][chunk] = sample_point_clouds(vertices, model.faces, points, rng)
+            if progress is not None:
+                progress.update(len(chunk))
+    return out
+
+
 def benchmark_sequence(motion, source, target, points, actor_hip_height, rng, progress=None):
     """One benchmark sequence: ``motion`` on ``source`` (clouds) and on ``target`` (ground
     truth, Mixamo style); see the module docstring."""
@@ -345,7 +369,7 @@ def save_npz(path, arrays):
     os.replace(temporary, path)
 
 
-DATASETS = ("skr", "skin", "smrm", "skr_tpose", "test")
+DATASETS = ("skr", "skin", "smrm", "skr_tpose", "test", "sequences")
 
 
 def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=None,
@@ -371,7 +395,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     # Each dataset has its own random stream, so changing one size leaves the others alone.
     streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
         ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test",
-         "skr_tpose_train", "skr_tpose_val"))}
+         "skr_tpose_train", "skr_tpose_val", "sequences_train", "sequences_val"))}
     bodies = {"train": [body_from_seed(s, cache_dir)
                         for s in sampled_body_seeds(config.bodies, "train")],
               "val": [body_from_seed(s, cache_dir)
@@ -389,7 +413,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                                                                 config.clip_frames)),
               "smrm_val": len(frames["val"].clip_starts(config.clip_stride,
                                                             config.clip_frames)),
-              "test_frames": sum(len(m.rotations) for m in motions["test"])}
+              "test_frames": sum(len(m.rotations) for m in motions["test"]),
+              **{f"sequences_{s}": int(frames[s].starts[-1]) for s in frames}}
     counts = {name: count for name, count in counts.items()
               if name.rsplit("_", 1)[0] in datasets}
     files = {}
@@ -408,7 +433,11 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                                                 length=config.clip_frames)),
                     ("skr_tpose", lambda frames, actor_hip_height, **rest:
                      skr_tpose_samples(**rest),
-                     dict(count=counts.get(f"skr_tpose_{split}"), points=config.points))):
+                     dict(count=counts.get(f"skr_tpose_{split}"), points=config.points)),
+                    ("sequences", lambda frames, bodies, actor_hip_height, rng, progress,
+                     max_shift, points: trial_sequences(frames, bodies, points,
+                                                        actor_hip_height, rng, progress),
+                     dict(points=config.points))):
                 if kind not in datasets:
                     continue
                 name = f"{kind}_{split}"
@@ -431,7 +460,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                           "target": target.name})
     summary = {
         "config": dataclasses.asdict(config), "actor_hip_height": actor_hip_height,
-        "counts": {**counts, "test_sequences": len(pairs),
+        "counts": {**counts, **({"test_sequences": len(pairs)} if "test" in datasets else {}),
                    "bodies_train": len(bodies["train"]), "bodies_val": len(bodies["val"]),
                    **{f"motion_frames_{s}": int(frames[s].starts[-1]) for s in frames},
                    **{f"trials_{s}": len(motions[s]) for s in motions}},
@@ -443,6 +472,13 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
         "files": files, "total_bytes": sum(files.values()),
         "seconds": round(time.perf_counter() - start, 1),
     }
+    previous = out_dir / "manifest.json"
+    if set(datasets) != set(DATASETS) and previous.is_file():   # a partial build adds to it
+        old = json.loads(previous.read_text())
+        summary = {**old, **summary, **{key: {**old.get(key, {}), **summary[key]}
+                                        for key in ("counts", "files", "phenotypes")}}
+        summary["test_pairs"] = pairs if "test" in datasets else old.get("test_pairs", [])
+        summary["total_bytes"] = sum(summary["files"].values())
     temporary = out_dir / ".manifest.json.tmp"
     temporary.write_text(json.dumps(summary, indent=1))
     os.replace(temporary, out_dir / "manifest.json")

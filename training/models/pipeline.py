@@ -1,12 +1,15 @@
 """The whole retargeting pipeline in torch: the reference the runtime's Retargeter must match.
 
-Mirrors minretarget.Retargeter step for step (inference only, eval mode, no gradients).
+Mirrors minretarget.Retargeter step for step (inference only, eval mode, no gradients), as
+``Retargeter(smoothing=None, foot_lock=None, mirror_target=False)`` runs it: SKR (and the
+refiner), the denoiser (if the config has them), SMRM, FK, LBS.
 """
 import torch
 from torch import nn
 
 from minretarget.config import ModelConfig
 from training.kinematics import linear_blend_skinning, skinning_transforms, forward_kinematics
+from .denoise import SkeletonDenoiser
 from .refine import JointRefiner
 from .skin import SkinningField
 from .skr import SkeletonRegressor
@@ -21,6 +24,7 @@ class ReferenceRetargeter(nn.Module):
         self.smrm = MotionRetargeter(config)
         self.skin = SkinningField(config)
         self.refine = JointRefiner(config) if config.refines else None
+        self.denoise = SkeletonDenoiser(config) if config.denoises else None
         self.target_points = self.tpose_joints = self.skin_weights = self.state = None
 
     @torch.no_grad()
@@ -45,11 +49,19 @@ class ReferenceRetargeter(nn.Module):
 
     def forward(self, points, state):
         """One frame as a pure function (what ``step`` runs, and what ONNX export traces):
-        points (P, 3), the MotionState before it (None at a stream's start) -> (dict as
-        ``step`` returns, the MotionState after it)."""
+        points (P, 3), the state before it (None at a stream's start) -> (dict as ``step``
+        returns, the state after it: SMRM's MotionState, and the denoiser's GRU state and
+        last input root, or None without a denoiser)."""
         source_joints = self.skeleton(points[None])                      # (1, J, 3)
-        rotations, root, joints, state = self.smrm(
-            source_joints[:, None], self.tpose_joints[None], state)
+        smrm_state, denoise_state = (None, None) if state is None else state
+        if self.denoise is not None:
+            hidden, previous_root = (None, None) if denoise_state is None else denoise_state
+            raw_root = source_joints[:, 0]
+            denoised, hidden = self.denoise(source_joints[:, None], previous_root, hidden)
+            source_joints, denoise_state = denoised[:, 0], (hidden, raw_root)
+        rotations, root, joints, smrm_state = self.smrm(
+            source_joints[:, None], self.tpose_joints[None], smrm_state)
+        state = (smrm_state, denoise_state)
         rotations, root, joints = rotations[0, 0], root[0, 0], joints[0, 0]
         _, global_rotations = forward_kinematics(rotations, root, self.tpose_joints)
         transforms = skinning_transforms(joints, global_rotations, self.tpose_joints)

@@ -1,0 +1,90 @@
+"""Stage 1d, skeleton denoising: a small GRU that removes what is left of SKR's jitter, online.
+
+SKR and the joint refiner see each cloud on its own, so their error changes from frame to
+frame: the source skeleton shakes by a centimetre or two, and SMRM passes that on to the
+target. The smoothing (``minretarget.smoothing``) can only trade that jitter against lag. The
+denoiser has learned how bodies move: trained on SKR's own skeletons of whole training
+trials against the true joints, it predicts a correction of each joint from the skeletons
+seen so far. Per frame, with the smoothed joints s_t (J, 3) and the last frame's root:
+
+    features: s_t - s_t[0] (J*3) and s_t[0] - s_{t-1}[0] (3), turned into the heading frame
+              (SMRM's, ``heading_features``)
+    GRU (``denoise_layers`` x ``denoise_hidden``) -> Dense -> offsets d (J, 3), heading frame
+    denoised joints: s_t + d turned back to the world
+
+Causal: only frames seen so far, one at a time; the GRU's state lives in
+``smrm.MotionState.denoise_hidden``. Not in the paper.
+"""
+from typing import NamedTuple
+
+import numpy as np
+
+from ._jit import kernel
+from .conventions import NUM_JOINTS
+from .nn import Dense, dense, gru_step
+from .validation import as_float32_array
+
+
+class DenoiserWeights(NamedTuple):
+    gru: tuple      # GRULayer per layer, input J*3 + 3
+    head: Dense     # (H, J*3): each joint's offset in the heading frame, metres
+
+
+def denoise_joints(weights, hidden, joints, previous_root):
+    """One frame.
+
+    Args:
+        weights: DenoiserWeights.
+        hidden: (layers, H) float32 the GRU's state after the last frame (zeros at a
+            stream's start).
+        joints: (J, 3) float32 this frame's (smoothed) source joints, metres.
+        previous_root: (3,) float32 the last frame's root (pelvis) of those joints, metres
+            (this frame's at a stream's start).
+    Returns:
+        the denoised joints (J, 3) and the new hidden state (layers, H), float32.
+    """
+    layers, width = len(weights.gru), weights.gru[0].hidden_weight.shape[0]
+    hidden = as_float32_array(hidden, "hidden", (layers, width)).copy()
+    joints = as_float32_array(joints, "joints", (NUM_JOINTS, 3))
+    previous_root = as_float32_array(previous_root, "previous_root", (3,))
+    return _denoise_kernel(weights, joints, previous_root, hidden), hidden
+
+
+@kernel
+def turn_about_up(x, y, z, sin, cos):
+    """Rotate the vector (x, y, z) about +Y by the angle with this sine and cosine."""
+    return cos * x + sin * z, y, cos * z - sin * x
+
+
+@kernel
+def heading_features(joints, previous_root):
+    """The body-aligned view SMRM and the denoiser take of a (J, 3) skeleton.
+
+    Heading: the turn about +Y from +Z to the way the body faces (facing = across x up,
+    across = left hip - right hip + left shoulder - right shoulder). Returns its sine and
+    cosine and the features (1, J*3 + 3): joints - root, then root - previous_root, both
+    turned by minus the heading."""
+    j = joints.shape[0]
+    root = joints[0]
+    across = joints[1] - joints[2] + joints[16] - joints[17]
+    norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
+    sin, cos = -across[2] / norm, across[0] / norm
+    features = np.empty((1, 3 * j + 3), dtype=np.float32)
+    for k in range(j + 1):
+        v = joints[k] - root if k < j else root - previous_root
+        features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = turn_about_up(
+            v[0], v[1], v[2], -sin, cos)
+    return features, sin, cos
+
+
+@kernel
+def _denoise_kernel(weights, joints, previous_root, hidden):
+    """The module docstring's step; updates ``hidden`` (layers, H) in place."""
+    features, sin, cos = heading_features(joints, previous_root)
+    offsets = dense(gru_step(features, hidden, weights.gru), weights.head, False)   # (1, J*3)
+    out = np.empty_like(joints)
+    for k in range(joints.shape[0]):
+        dx, dy, dz = turn_about_up(offsets[0, 3 * k], offsets[0, 3 * k + 1],
+                                   offsets[0, 3 * k + 2], sin, cos)
+        out[k, 0], out[k, 1], out[k, 2] = joints[k, 0] + dx, joints[k, 1] + dy, joints[k, 2] + dz
+    return out
