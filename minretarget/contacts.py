@@ -27,13 +27,10 @@ The defaults were chosen on validation motion, never the test split
 (``python -m training.tune_contacts``: held-out subjects 06 and 09, basketball, running and
 walking, 1,354 frames on held-out bodies, SKR and SMRM of the shipped weights): the least
 PA-MPJPE among the settings of a grid whose toes move no faster over the ground truth's
-contacts than the truth's own. Chosen again for the weights with SMRM's analytic prior and
-the alpha-beta source smoothing, on a grid widened to shorter leashes and faster creeps: the
-toe speed there falls from 0.295 to 0.189 m/s (the truth's: 0.191), for MPJPE 0.0411 ->
-0.0414 m and PA-MPJPE 0.0250 -> 0.0254 m (the previous defaults, a 3 cm leash and a 0.2
-creep: 0.169 m/s, PA-MPJPE 0.0258 m). Re-run after the refiner's longer training, the rule
-picks plant_speed 2 and a 0.4 creep, whose PA-MPJPE equals these defaults' (0.0245 m) with
-faster toes (0.189 against 0.184 m/s), so the defaults stay.
+contacts than the truth's own. Chosen last for the weights with the skeleton denoiser
+(``minretarget.denoise``): a 1 cm leash and a 0.2 creep, toe speed 0.246 -> 0.188 m/s (the
+truth's: 0.191) for MPJPE 0.0390 -> 0.0391 m and PA-MPJPE 0.0226 -> 0.0227 m; the previous
+defaults (a 2 cm leash, a 0.3 creep) held the toes to 0.177 m/s for a PA-MPJPE of 0.0230 m.
 """
 from typing import NamedTuple
 
@@ -55,10 +52,10 @@ class FootLock(NamedTuple):
     lift_speed: float = 2.0         # m/s: a faster one lifts
     speed_cutoff: float = 12.0      # Hz: low-pass of the toe track the speed is measured on
     height_margin: float = 0.05     # m: a toe plants only this close above the other toe
-    max_offset: float = 0.02        # m: a planted toe is held at most this far from SMRM's:
+    max_offset: float = 0.01        # m: a planted toe is held at most this far from SMRM's:
     #                                 beyond, its anchor is dragged along (a leash)
     release_decay: float = 0.5      # fraction of the offset kept each frame after lifting
-    anchor_follow: float = 0.3      # fraction of the way a planted toe's anchor moves each
+    anchor_follow: float = 0.2      # fraction of the way a planted toe's anchor moves each
     #                                 frame toward SMRM's (filtered) toe: a slow creep that
     #                                 keeps the legs near SMRM's pose over long contacts
 

@@ -108,11 +108,11 @@ def test_a_standing_foot_stays_put_and_a_swinging_one_is_left_alone():
     assert np.abs(np.diff(after[5:, 0], axis=0)).max() < 1e-4
     step_before = np.linalg.norm(np.diff(before[5:, 0], axis=0), axis=-1).mean()
     assert step_before > 0.005
-    # The default anchor creeps after SMRM's toe (a fifth of the gap a frame), low-passed:
-    # the toe moves, but far less than SMRM's.
+    # The default anchor creeps after SMRM's toe (a fifth of the gap a frame, on a 1 cm
+    # leash), low-passed: the toe moves, but much less than SMRM's.
     creeping, _, _ = run_lock(rotations, root, tpose)
     step = np.linalg.norm(np.diff(toes_of(creeping, root, tpose)[5:, 0], axis=0), axis=-1)
-    assert 0 < step.mean() < 0.25 * step_before
+    assert 0 < step.mean() < 0.5 * step_before
     # Only the legs' hip, knee and ankle rotations change; they stay unit quaternions.
     others = [j for j in range(NUM_JOINTS) if j not in LEG_JOINTS]
     np.testing.assert_array_equal(out[:, others], rotations[:, others])

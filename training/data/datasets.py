@@ -76,8 +76,9 @@ CHUNK = 256
 class BuildConfig:
     """Sizes of a build. Validation gets a tenth of each training count (bodies: an eighth).
 
-    The defaults take about 11 minutes on a 2-core machine and write 3.7 GB (0.7 GB of
-    training and validation data, 3.0 GB of test sequences).
+    The defaults take about 21 minutes on a 2-core machine and write 5.0 GB (0.7 GB of
+    training and validation data, 1.3 GB of whole trials for the denoiser, about 10 minutes
+    of the time, and 3.0 GB of test sequences).
     """
     seed: int = 0
     bodies: int = 120            # training bodies (the paper: 120)
