@@ -116,7 +116,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
     frames = [learned.step_skeleton(joints) for joints in raw_joints]
     seconds = time.perf_counter() - start
     model = stacked(frames)
-    skr_joints = np.stack([f.source_joints for f in frames])                  # smoothed
+    skr_joints = np.stack([f.source_joints for f in frames])       # smoothed and denoised
 
     # Analytic: the same source skeletons and target rig, rotations from bone alignment, and
     # the root scaled like SMRM's (by the mean source leg length so far).

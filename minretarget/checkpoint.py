@@ -4,7 +4,8 @@ Files in the output folder while a run goes on (removed when it completes):
     checkpoint.npz    replaced atomically at the start, every ``CHECKPOINT_EVERY`` frames
                       and at Ctrl-C: ``frames_done``; the SMRM state after those frames
                       (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
-                      ``previous_joints``, ``joint_velocity``, ``source_leg_length`` float64,
+                      ``previous_joints``, ``smoothed_joints``, ``joint_velocity``,
+                      ``denoise_hidden``, ``source_leg_length`` float64,
                       ``frames_seen``, the foot contacts' ``toe_filtered``, ``toe_anchor``,
                       ``foot_offset``, ``feet_planted``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
@@ -174,8 +175,9 @@ def load_checkpoint(out_dir, run, weights):
     except ARCHIVE_ERRORS as error:
         raise ValueError(f"{path}: unreadable checkpoint ({error}); the output cannot be "
                          "resumed (--overwrite starts again)") from None
-    differences = [f"{key} {saved.get(key)!r} then, {value!r} now" for key, value in run.items()
-                   if saved.get(key) != value]
+    # Over both records' keys: an option recorded only when on (refine, denoise) may be off.
+    differences = [f"{key} {saved.get(key)!r} then, {run.get(key)!r} now"
+                   for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
     if differences:
         raise ValueError(f"{path}: this output was started with other inputs or options "
                          f"({'; '.join(differences)}); resume with the same ones, or use "

@@ -99,7 +99,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
 
     Args:
         retargeter: Retargeter with weights and a target (``set_target``); for a skeleton
-            source its ``smoothing`` is switched off (clean joints: smoothing would only lag).
+            source its ``smoothing`` and ``denoise`` are switched off (clean joints: smoothing
+            would only lag, and the denoiser learned SKR's errors).
         open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.
@@ -272,9 +273,9 @@ def build_parser():
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
     retarget.add_argument("--no-smoothing", action="store_true",
-                          help="feed SMRM the source skeleton of each point cloud as SKR finds "
-                               "it (default: smoothed over time against jitter; skeleton "
-                               "sources are never smoothed)")
+                          help="do not smooth the source skeleton of each point cloud over "
+                               "time (default: smoothed against jitter; the denoiser still "
+                               "runs unless --no-denoise; skeleton sources are never smoothed)")
     retarget.add_argument("--no-foot-lock", action="store_true",
                           help="keep SMRM's leg rotations as they come (default: a foot that "
                                "stops on the ground is held there, the leg bent to reach it)")

@@ -33,7 +33,8 @@ class ModelConfig:
     # (minretarget.analytic, each target bone turned onto its source bone) instead of the whole
     # rotation; each joint's predicted quaternion is applied after the analytic one, in the
     # joint's own frame. False: the paper's SMRM (the root's rotation relative to the heading).
-    # Last, so that positional configs from before it keep their meaning.
+    # This and the fields after it come last, so that positional configs from before them keep
+    # their meaning.
     smrm_analytic_prior: bool = False
     # Not in the paper: the source skeleton's denoiser (minretarget.denoise), a GRU
     # denoise_layers deep and denoise_hidden wide; none when denoise_hidden is 0.

@@ -61,8 +61,8 @@ class Retargeter:
         have one; False for SKR's joints as they are (the paper's pipeline).
         ``denoise``: pass the smoothed source skeleton through the weights' denoiser
         (``denoise``: a GRU trained on SKR's skeletons of moving bodies), if they have one;
-        False to hand SMRM the smoothed skeleton (the paper's pipeline). Takes effect when a
-        stream starts."""
+        False to hand SMRM the smoothed skeleton (the paper's pipeline). Set it before a stream
+        starts (or ``reset()``): a stream refuses a denoiser other than the one it began with."""
         self.weights = weights
         self.warn = warn
         self.workers = workers

@@ -119,7 +119,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
         smoothing: ``smoothing.Smoothing`` to smooth the source joints over time first, or
             None to use them as they are (what the torch reference does).
         denoiser: ``denoise.DenoiserWeights`` to denoise them next (step 0'), or None (the
-            paper's pipeline); a stream keeps the one it started with.
+            paper's pipeline); a state from a stream with another shape of denoiser (or none)
+            is refused.
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new MotionState (its ``previous_joints``: the source joints SMRM saw).

@@ -14,7 +14,7 @@ import pytest
 
 from conftest import GOLDEN
 from minretarget import Retargeter, cli
-from minretarget.checkpoint import CHECKPOINT, TRACK, Track, save_checkpoint
+from minretarget.checkpoint import CHECKPOINT, TRACK, Track, load_checkpoint, save_checkpoint
 from minretarget.formats.mesh import read_points, write_mesh
 
 trimesh = pytest.importorskip("trimesh")
@@ -199,3 +199,14 @@ def test_long_stream_memory_is_flat(tiny_weights):
     assert t == 9_999 and np.isfinite(frame.vertices).all()
     assert traced_growth < 16 * 1024, f"{traced_growth} bytes kept over 2,000 frames"
     assert resident_growth < 8 * 2**20, f"resident size grew {resident_growth} bytes"
+
+
+def test_resume_refuses_an_option_switched_off(tiny_weights, tmp_path):
+    """Options recorded only when on (refine, denoise) count when switched off too."""
+    track = Track(tmp_path / TRACK)
+    run = {"version": 5, "frames": 10, "denoise": True}
+    save_checkpoint(tmp_path, run, None, 0, track)
+    track.close()
+    with pytest.raises(ValueError, match="denoise True then, None now"):
+        load_checkpoint(tmp_path, {"version": 5, "frames": 10}, tiny_weights)
+    assert load_checkpoint(tmp_path, run, tiny_weights) == (0, None)

@@ -221,6 +221,24 @@ def test_denoiser_learns_from_the_skeletons_the_runtime_smooths(run):
         np.testing.assert_allclose(got[a:b].numpy(), want, atol=1e-5)
 
 
+def test_the_denoiser_never_learns_from_an_untrained_refiner(run, tmp_path):
+    """denoise --init <file without a refiner>, with a recipe that has one: the denoiser
+    learns SKR's smoothed skeletons (its validation baseline says so), and no refiner is
+    exported."""
+    _, old = weights_without(run, tmp_path, "refine")
+    main(["denoise", "--init", str(tmp_path / "old.npz"), "--recipe", str(run / "tiny.json"),
+          "--data", str(run), "--out", str(tmp_path / "denoised"), "--threads", "1"])
+    new = load_weights(tmp_path / "denoised" / "weights.npz")
+    assert new.refine is None and new.denoise is not None
+    data = np.load(run / "sequences_val.npz")
+    skeletons = smoothed_skeletons(old.skr, None, 0, torch.from_numpy(data["points"]),
+                                   torch.from_numpy(data["starts"]))
+    error = float((skeletons - torch.from_numpy(data["joints"])).norm(dim=-1).mean())
+    last = (tmp_path / "denoised" / "denoise.csv").read_text().splitlines()
+    row = dict(zip(last[0].split(","), last[-1].split(",")))
+    assert abs(float(row["val_mpjpe_smoothed"]) - error) < 1e-6
+
+
 def test_an_untrained_refiner_is_never_exported_nor_trained_on_a_random_skr(run, tmp_path):
     """smrm --init <file without a refiner> exports no refiner (it would be random); refine
     alone without a trained SKR is refused."""

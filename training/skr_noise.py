@@ -10,10 +10,10 @@ differently: a part that stays nearly constant along a clip (the body's shape mi
 bone too long) and a part that changes every frame (jitter from the fresh point sample). This
 plays validation trials (held-out subjects) on validation bodies, samples clouds as the test
 benchmark does, runs the runtime's SKR (then the joint refiner, if the weights have one:
-the skeleton before smoothing and the denoiser) and splits the residual r_t (T, J, 3) of each
-sequence into its mean over the sequence (the bias) and the rest. It prints the standard deviation of
-each (metres, per coordinate), overall and per joint, and the lag-1 autocorrelation of the
-rest (0: white jitter).
+the skeleton before smoothing and the denoiser) and splits the residual r_t (T, J, 3) of
+each sequence into its mean over the sequence (the bias) and the rest. It prints the standard
+deviation of each (metres, per coordinate), overall and per joint, and the lag-1
+autocorrelation of the rest (0: white jitter).
 Never the test split.
 """
 import argparse

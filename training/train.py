@@ -253,6 +253,11 @@ def initial_models(recipe, init=None, scratch=()):
                        loaded.get("denoise"))
         if recipe.model.smrm_analytic_prior and not init.config.smrm_analytic_prior:
             loaded["smrm"].reset_rotation_head()   # its rotations become corrections: start at 0
+        if (init.config.smrm_analytic_prior and not recipe.model.smrm_analytic_prior
+                and "smrm" not in scratch):
+            raise ValueError("the --init weights' SMRM predicts corrections to the analytic "
+                             "rotations (smrm_analytic_prior); a recipe without the prior would "
+                             "read them as whole rotations: set model.smrm_analytic_prior")
         models.update({name: loaded[name] for name in loaded if name not in scratch})
     return models
 
@@ -383,8 +388,9 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
     starts = train["starts"].cpu()
     lengths = starts[1:] - starts[:-1]
     usable = torch.nonzero(lengths >= stage_recipe.window)[:, 0]
-    if not len(usable):
-        raise ValueError(f"denoise.window {stage_recipe.window}: no training trial is that long")
+    if stage_recipe.window < 3 or not len(usable):
+        raise ValueError(f"denoise.window {stage_recipe.window}: must be at least 3 frames "
+                         "(acceleration) and no longer than some training trial")
     model = (model or SkeletonDenoiser(recipe.model)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     stage = Stage("denoise", run_dir, {"denoise": model}, {"denoise": optimizer},
@@ -412,7 +418,7 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
 
     def evaluate():
         """Each validation trial whole, from a stream's start, as the runtime plays it."""
-        totals = torch.zeros(4)
+        totals, frames = torch.zeros(4), 0
         bounds = val["starts"].cpu().tolist()
         for a, b in zip(bounds[:-1], bounds[1:]):
             if b - a < 3:
@@ -421,7 +427,8 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
             denoised = model(skeleton)[0]
             totals += (b - a) * torch.tensor([*map(float, denoise_losses(denoised, joints)),
                                               *map(float, denoise_losses(skeleton, joints))])
-        totals /= bounds[-1]
+            frames += b - a
+        totals /= max(frames, 1)
         return dict(zip(("val_mpjpe", "val_acc", "val_mpjpe_smoothed", "val_acc_smoothed"),
                         totals.tolist()))
 
@@ -626,15 +633,22 @@ def main(argv=None):
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "recipe.json").write_text(recipe.to_json())
     torch.manual_seed(recipe.seed)
-    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
-                "refine": lambda *a: train_refine(*a, skr=models["skr"]),
-                "denoise": lambda *a: train_denoise(*a, skr=models["skr"],
-                                                    refine=models.get("refine"))}
     init = load_weights(args.init) if args.init else None
     # The recipe's own stages: refine and denoise only if its model has them.
     optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}
     own = tuple(n for n in STAGES if optional.get(n, True))
     stages = tuple(n for n in args.stage if n in own)
+
+    def trained(name):
+        """Whether the refiner or denoiser is trained here or loaded from --init: one that
+        is neither is random, so it is never exported nor learned from."""
+        return optional[name] and (name in stages or (
+            init is not None and getattr(init, name) is not None
+            and name not in args.scratch))
+    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
+                "refine": lambda *a: train_refine(*a, skr=models["skr"]),
+                "denoise": lambda *a: train_denoise(*a, skr=models["skr"], refine=models[
+                    "refine"] if trained("refine") else None)}
     if not stages:
         parser.error("the recipe's model has no refiner (model.refine_point_widths) or no "
                      "denoiser (model.denoise_hidden)")
@@ -646,6 +660,10 @@ def main(argv=None):
                 and getattr(init, name) is not None):
             print(f"warning: SKR is retrained but not the {what}, which learned the old "
                   f"SKR's errors; train skr,{name} to retrain both")
+    if "refine" in stages and "denoise" not in stages and init is not None \
+            and init.denoise is not None:
+        print("warning: the refiner is retrained but not the denoiser, which learned the old "
+              "refiner's errors; train refine,denoise to retrain both")
     models, finished = initial_models(recipe, init, args.scratch), True
     for name in stages:
         start = time.perf_counter()
@@ -654,12 +672,6 @@ def main(argv=None):
         print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
         finished = finished and done
     if finished and (stages == own or init is not None):
-        # A refiner or denoiser neither trained here nor loaded from --init is random: not
-        # exported.
-        def trained(name):
-            return optional[name] and (name in stages or (
-                init is not None and getattr(init, name) is not None
-                and name not in args.scratch))
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
                        metadata=provenance(recipe, args.data, init),
