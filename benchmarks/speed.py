@@ -4,8 +4,8 @@
 
 One process, the same weights and inputs for every engine, batch 1 streaming (one frame at a
 time, as online use), with N threads everywhere (BLAS under numba, torch, onnxruntime):
-  * milliseconds per frame of each stage (SKR, joint refiner, SMRM step, FK, LBS) and end to
-    end, at P source points in {1024, 2048, 6890} and V target points in {6890, 13718}
+  * milliseconds per frame of each stage (SKR, joint refiner, denoiser, SMRM step, FK, LBS) and
+    end to end, at P source points in {1024, 2048, 6890} and V target points in {6890, 13718}
     (--quick: the default setting P = 2048, V = 13718 only), and their floating-point
     operations per frame;
   * the torch reference (training/models/pipeline.py) in eager mode and, at the default
