@@ -29,7 +29,7 @@ from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
-from .denoise import _denoise_kernel, heading_features, turn_about_up
+from .denoise import DenoiserWeights, _denoise_kernel, heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
 from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401
@@ -128,6 +128,9 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     source_joints = as_float32_array(source_joints, "source_joints", (NUM_JOINTS, 3))
     target_tpose = as_float32_array(target_tpose, "target_tpose", (NUM_JOINTS, 3))
     smoothing = check_smoothing(smoothing)
+    if denoiser is not None and not isinstance(denoiser, DenoiserWeights):
+        raise ValueError(f"denoiser must be DenoiserWeights or None, got "
+                         f"{type(denoiser).__name__}")
     if state is None:
         state = initial_state(weights, source_joints, denoiser)
     if state.denoise_hidden.shape != _denoise_shape(denoiser):

@@ -216,6 +216,9 @@ def test_only_smrm_with_longer_clips(built, cache, tmp_path):
     manifest = json.loads((tmp_path / "manifest.json").read_text())
     assert manifest["counts"]["smrm_train"] == 3 and manifest["counts"]["sequences_train"] == 90
     assert set(manifest["files"]) == {p.name for p in tmp_path.glob("*.npz")}
+    with pytest.raises(ValueError, match="another build config"):
+        build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**config.__dict__, "seed": 4}),
+              cache_dir=cache, show_progress=False, datasets=("sequences",))
 
 
 def test_augment_turns_about_y_and_shifts():

@@ -181,6 +181,8 @@ def test_retarget_step_denoises_after_smoothing_and_before_smrm(tiny_weights):
         np.testing.assert_allclose(root, want_root, atol=1e-4)
     with pytest.raises(ValueError, match="reset the stream"):
         retarget_step(tiny_weights.smrm, state, frames[0], tpose)     # started with one
+    with pytest.raises(ValueError, match="DenoiserWeights"):
+        retarget_step(tiny_weights.smrm, None, frames[0], tpose, None, tiny_weights.smrm)
 
 
 def twins_leg_length(joints):

@@ -388,11 +388,19 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
         show_progress: draw a tqdm progress bar.
         datasets: the kinds to build, of ``DATASETS`` (e.g. ("smrm",) for longer clips alone;
             each kind draws from its own random stream, so it comes out as in a full build).
+            Built into a folder that holds a build already, they are added to its
+            manifest, which must record the same config.
     Returns:
         a summary dict: counts, file sizes (bytes), seconds; also saved as manifest.json.
     """
     start = time.perf_counter()
     out_dir = Path(out_dir)
+    previous = out_dir / "manifest.json"
+    partial = set(datasets) != set(DATASETS) and previous.is_file()
+    old = json.loads(previous.read_text()) if partial else {}
+    if partial and old.get("config") != dataclasses.asdict(config):
+        raise ValueError(f"{previous} records another build config ({old.get('config')}); "
+                         f"build these datasets with it, or into another folder")
     # Each dataset has its own random stream, so changing one size leaves the others alone.
     streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
         ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test",
@@ -473,9 +481,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
         "files": files, "total_bytes": sum(files.values()),
         "seconds": round(time.perf_counter() - start, 1),
     }
-    previous = out_dir / "manifest.json"
-    if set(datasets) != set(DATASETS) and previous.is_file():   # a partial build adds to it
-        old = json.loads(previous.read_text())
+    if partial:                                      # a partial build adds to the manifest
         summary = {**old, **summary, **{key: {**old.get(key, {}), **summary[key]}
                                         for key in ("counts", "files", "phenotypes")}}
         summary["test_pairs"] = pairs if "test" in datasets else old.get("test_pairs", [])
