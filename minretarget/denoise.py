@@ -8,7 +8,7 @@ trials against the true joints, it predicts a correction of each joint from the 
 seen so far. Per frame, with the smoothed joints s_t (J, 3) and the last frame's root:
 
     features: s_t - s_t[0] (J*3) and s_t[0] - s_{t-1}[0] (3), turned into the heading frame
-              (SMRM's, ``heading_features``)
+              (SMRM's: ``heading.heading_features``)
     GRU (``denoise_layers`` x ``denoise_hidden``) -> Dense -> offsets d (J, 3), heading frame
     denoised joints: s_t + d turned back to the world
 
@@ -21,6 +21,7 @@ import numpy as np
 
 from ._jit import kernel
 from .conventions import NUM_JOINTS
+from .heading import heading_features, turn_about_up
 from .nn import Dense, dense, gru_step
 from .validation import as_float32_array
 
@@ -48,33 +49,6 @@ def denoise_joints(weights, hidden, joints, previous_root):
     joints = as_float32_array(joints, "joints", (NUM_JOINTS, 3))
     previous_root = as_float32_array(previous_root, "previous_root", (3,))
     return _denoise_kernel(weights, joints, previous_root, hidden), hidden
-
-
-@kernel
-def turn_about_up(x, y, z, sin, cos):
-    """Rotate the vector (x, y, z) about +Y by the angle with this sine and cosine."""
-    return cos * x + sin * z, y, cos * z - sin * x
-
-
-@kernel
-def heading_features(joints, previous_root):
-    """The body-aligned view SMRM and the denoiser take of a (J, 3) skeleton.
-
-    Heading: the turn about +Y from +Z to the way the body faces (facing = across x up,
-    across = left hip - right hip + left shoulder - right shoulder). Returns its sine and
-    cosine and the features (1, J*3 + 3): joints - root, then root - previous_root, both
-    turned by minus the heading."""
-    j = joints.shape[0]
-    root = joints[0]
-    across = joints[1] - joints[2] + joints[16] - joints[17]
-    norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
-    sin, cos = -across[2] / norm, across[0] / norm
-    features = np.empty((1, 3 * j + 3), dtype=np.float32)
-    for k in range(j + 1):
-        v = joints[k] - root if k < j else root - previous_root
-        features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = turn_about_up(
-            v[0], v[1], v[2], -sin, cos)
-    return features, sin, cos
 
 
 @kernel

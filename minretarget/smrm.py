@@ -29,7 +29,8 @@ from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
-from .denoise import DenoiserWeights, _denoise_kernel, heading_features, turn_about_up
+from .denoise import DenoiserWeights, _denoise_kernel
+from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
 from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401

@@ -1,0 +1,36 @@
+"""The body-aligned frame SMRM and the skeleton denoiser see a skeleton in.
+
+The heading is the turn about +Y from +Z to the way the body faces; turned by minus the
+heading, a skeleton faces +Z whichever way it walks, so the networks need not learn every
+direction.
+"""
+import numpy as np
+
+from ._jit import kernel
+
+
+@kernel
+def turn_about_up(x, y, z, sin, cos):
+    """Rotate the vector (x, y, z) about +Y by the angle with this sine and cosine."""
+    return cos * x + sin * z, y, cos * z - sin * x
+
+
+@kernel
+def heading_features(joints, previous_root):
+    """The body-aligned view SMRM and the denoiser take of a (J, 3) skeleton.
+
+    Heading: the turn about +Y from +Z to the way the body faces (facing = across x up,
+    across = left hip - right hip + left shoulder - right shoulder). Returns its sine and
+    cosine and the features (1, J*3 + 3): joints - root, then root - previous_root, both
+    turned by minus the heading."""
+    j = joints.shape[0]
+    root = joints[0]
+    across = joints[1] - joints[2] + joints[16] - joints[17]
+    norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
+    sin, cos = -across[2] / norm, across[0] / norm
+    features = np.empty((1, 3 * j + 3), dtype=np.float32)
+    for k in range(j + 1):
+        v = joints[k] - root if k < j else root - previous_root
+        features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = turn_about_up(
+            v[0], v[1], v[2], -sin, cos)
+    return features, sin, cos
