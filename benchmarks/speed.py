@@ -31,7 +31,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from minretarget.denoise import denoise_joints
+from minretarget.denoise import denoise_joints, hidden_shape
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.retargeter import Retargeter
@@ -140,8 +140,7 @@ def minretarget_stages(weights, source_points, target_points, repeats, workers):
     rotations, root, state = retarget_step(weights.smrm, None, source_joints, target.tpose_joints)
     joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
     transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
-    denoise_hidden = np.zeros((weights.config.denoise_layers, weights.config.denoise_hidden),
-                              np.float32)
+    denoise_hidden = np.zeros(hidden_shape(weights.denoise), np.float32)
     cycle = iter(range(10 ** 9))
     stages = {
         "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr, workers),

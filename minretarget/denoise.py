@@ -31,6 +31,14 @@ class DenoiserWeights(NamedTuple):
     head: Dense     # (H, J*3): each joint's offset in the heading frame, metres
 
 
+def hidden_shape(weights):
+    """The shape of the GRU state of DenoiserWeights ``weights``: (layers, H); (0, 0) for None
+    (no denoiser), which is what a stream's state then holds."""
+    if weights is None:
+        return (0, 0)
+    return len(weights.gru), weights.gru[0].hidden_weight.shape[0]
+
+
 def denoise_joints(weights, hidden, joints, previous_root):
     """One frame.
 
@@ -44,8 +52,7 @@ def denoise_joints(weights, hidden, joints, previous_root):
     Returns:
         the denoised joints (J, 3) and the new hidden state (layers, H), float32.
     """
-    layers, width = len(weights.gru), weights.gru[0].hidden_weight.shape[0]
-    hidden = as_float32_array(hidden, "hidden", (layers, width)).copy()
+    hidden = as_float32_array(hidden, "hidden", hidden_shape(weights)).copy()
     joints = as_float32_array(joints, "joints", (NUM_JOINTS, 3))
     previous_root = as_float32_array(previous_root, "previous_root", (3,))
     return _denoise_kernel(weights, joints, previous_root, hidden), hidden

@@ -55,8 +55,8 @@ class Retargeter:
         mirror image of it, averaged (``skr.mirror_averaged``), or False for SKR once
         (the paper's pipeline and the torch reference).
         ``mirror_source``: the same for every source frame: SKR's time doubles (with
-        ``workers=2`` the cloud and its mirror image run side by side), for 1.7 mm of
-        PA-MPJPE and 2.2 mm/frame^2 of Acc on the test benchmark (README, Results).
+        ``workers=2`` the cloud and its mirror image run side by side), for 1.3 mm of
+        PA-MPJPE and 1.0 mm/frame^2 of Acc on the test benchmark (README, Results).
         ``refine``: move SKR's joints with the weights' joint refiner (``refine``), if they
         have one; False for SKR's joints as they are (the paper's pipeline).
         ``denoise``: pass the smoothed source skeleton through the weights' denoiser

@@ -29,7 +29,7 @@ from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
-from .denoise import DenoiserWeights, _denoise_kernel
+from .denoise import DenoiserWeights, _denoise_kernel, hidden_shape
 from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
@@ -67,11 +67,6 @@ class MotionState(NamedTuple):
     feet_planted: np.ndarray     # (2,) bool
 
 
-def _denoise_shape(denoiser):
-    return ((len(denoiser.gru), denoiser.gru[0].hidden_weight.shape[0])
-            if denoiser is not None else (0, 0))
-
-
 def initial_state(weights, first_joints, denoiser=None):
     """The state before a stream whose first source frame has joints ``first_joints`` (J, 3),
     for SMRMWeights ``weights`` and DenoiserWeights ``denoiser`` (or None)."""
@@ -81,7 +76,7 @@ def initial_state(weights, first_joints, denoiser=None):
     feet = np.zeros((2, 3), dtype=np.float32)
     return MotionState(zeros, zeros.copy(), first_joints, first_joints.copy(),
                        np.zeros_like(first_joints),
-                       np.zeros(_denoise_shape(denoiser), dtype=np.float32), 0.0, 0,
+                       np.zeros(hidden_shape(denoiser), dtype=np.float32), 0.0, 0,
                        feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool))
 
 
@@ -98,7 +93,7 @@ def check_state(weights, state, denoiser=None):
     joints = [as_float32_array(getattr(state, name), f"state.{name}", (NUM_JOINTS, 3))
               for name in ("previous_joints", "smoothed_joints", "joint_velocity")]
     denoise = as_float32_array(state.denoise_hidden, "state.denoise_hidden",
-                               _denoise_shape(denoiser))
+                               hidden_shape(denoiser))
     try:
         leg, frames = float(state.source_leg_length), int(state.frames_seen)
     except (TypeError, ValueError, OverflowError):                  # None, "x", inf
@@ -134,9 +129,9 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
                          f"{type(denoiser).__name__}")
     if state is None:
         state = initial_state(weights, source_joints, denoiser)
-    if state.denoise_hidden.shape != _denoise_shape(denoiser):
+    if state.denoise_hidden.shape != hidden_shape(denoiser):
         raise ValueError(f"the stream's denoiser state has shape {state.denoise_hidden.shape}"
-                         f", this denoiser needs {_denoise_shape(denoiser)}: reset the stream "
+                         f", this denoiser needs {hidden_shape(denoiser)}: reset the stream "
                          f"to change denoisers")
     smoothed, velocity = _smooth_kernel(source_joints, state.smoothed_joints,
                                         state.joint_velocity, *_parameters(smoothing))

@@ -3,6 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from minretarget.denoise import denoise_joints, hidden_shape
 from minretarget.weights import load_weights
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -21,3 +22,15 @@ def tiny_stream():
         arrays = dict(data)
     sources = np.split(arrays.pop("source_points"), np.cumsum(arrays.pop("source_counts"))[:-1])
     return arrays.pop("target"), sources, arrays
+
+
+def denoised_stream(weights, frames):
+    """(T, J, 3) a stream's smoothed source joints -> the runtime denoiser's output (T, J, 3),
+    one frame at a time from a stream's start."""
+    hidden = np.zeros(hidden_shape(weights), np.float32)
+    out, previous_root = [], frames[0, 0]
+    for joints in frames:
+        denoised, hidden = denoise_joints(weights, hidden, joints, previous_root)
+        out.append(denoised)
+        previous_root = joints[0]
+    return np.stack(out)

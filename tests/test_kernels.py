@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 import twins
+from conftest import denoised_stream
 from minretarget.conventions import NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, skinning_transforms
-from minretarget.denoise import denoise_joints
 from minretarget.nn import dense, gru_layer_step, mlp
 from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.skin import linear_blend_skinning, skinning_weights
@@ -131,16 +131,6 @@ def test_retarget_step_matches_twin_and_streams(tiny_weights):
                                    + turn @ twins.dense(x, smrm.root_head, False)[0], atol=1e-5)
         previous_root = joints[0]
     assert state.frames_seen == 3
-
-
-def denoised_stream(weights, frames):
-    hidden = np.zeros((len(weights.gru), weights.gru[0].hidden_weight.shape[0]), np.float32)
-    out, previous_root = [], frames[0, 0]
-    for joints in frames:
-        denoised, hidden = denoise_joints(weights, hidden, joints, previous_root)
-        out.append(denoised)
-        previous_root = joints[0]
-    return np.stack(out)
 
 
 def test_denoiser_matches_twin_and_turns_with_the_body(tiny_weights):

@@ -6,12 +6,12 @@ import pytest
 
 torch = pytest.importorskip("torch")  # the runtime-only suite (test_golden.py) runs without it
 
+from conftest import denoised_stream  # noqa: E402
 from make_golden import reference_outputs  # noqa: E402
 from reference_models import TINY_CONFIG, random_reference, random_stream  # noqa: E402
 
 from minretarget.config import ModelConfig  # noqa: E402
 from minretarget.conventions import NUM_JOINTS  # noqa: E402
-from minretarget.denoise import denoise_joints  # noqa: E402
 from minretarget.refine import refine_joints  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
 from minretarget.skin import linear_blend_skinning, skinning_weights  # noqa: E402
@@ -180,12 +180,7 @@ def test_denoiser_at_the_cpu_recipe_sizes_matches_torch():
               + rng.normal(0, 0.3, (1, NUM_JOINTS, 3))).astype(np.float32)
     with torch.no_grad():
         want = model.denoise(torch.from_numpy(joints)[None])[0][0].numpy()
-    hidden = np.zeros((weights.config.denoise_layers, weights.config.denoise_hidden), np.float32)
-    previous_root = joints[0, 0]
-    for t, frame in enumerate(joints):
-        got, hidden = denoise_joints(weights.denoise, hidden, frame, previous_root)
-        np.testing.assert_allclose(got, want[t], atol=TOLERANCE, err_msg=f"frame {t}")
-        previous_root = frame[0]
+    np.testing.assert_allclose(denoised_stream(weights.denoise, joints), want, atol=TOLERANCE)
 
 
 def test_batch_norm_is_folded_with_running_statistics(tiny_model):

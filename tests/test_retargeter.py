@@ -217,7 +217,7 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
     """denoise=False, and weights without a denoiser, are the same pipeline; with it, SMRM
     sees the denoiser's output of the smoothed skeleton, which the frames report; a state
     from one pipeline is refused by the other."""
-    from minretarget.denoise import denoise_joints
+    from conftest import denoised_stream
     target, sources, _ = tiny_stream
     without = tiny_weights._replace(config=tiny_weights.config.without_denoiser(), denoise=None)
     on, off, bare = (Retargeter(tiny_weights, warn=False), Retargeter(tiny_weights, warn=False,
@@ -226,18 +226,16 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
     for retargeter in (on, off, bare):
         retargeter.set_target(target)
     assert on.denoiser is tiny_weights.denoise and off.denoiser is None is bare.denoiser
-    hidden = np.zeros((2, tiny_weights.config.denoise_hidden), np.float32)
-    previous_root = None
+    frames, states = [], []
     for points in sources[:6]:
-        with_it, smoothed, plain = on.step(points), off.step(points), bare.step(points)
-        np.testing.assert_array_equal(smoothed.vertices, plain.vertices)
-        if previous_root is None:
-            previous_root = smoothed.source_joints[0]
-        want, hidden = denoise_joints(tiny_weights.denoise, hidden, smoothed.source_joints,
-                                      previous_root)
-        previous_root = smoothed.source_joints[0]
-        np.testing.assert_allclose(with_it.source_joints, want, atol=1e-6)
-        np.testing.assert_allclose(on.state.smoothed_joints, smoothed.source_joints, atol=1e-6)
-    assert np.abs(with_it.vertices - smoothed.vertices).max() > 1e-4
+        frames.append((on.step(points), off.step(points), bare.step(points)))
+        states.append(on.state.smoothed_joints)
+    smoothed = np.stack([f.source_joints for _, f, _ in frames])
+    want = denoised_stream(tiny_weights.denoise, smoothed)
+    for (with_it, without_it, plain), joints in zip(frames, want):
+        np.testing.assert_array_equal(without_it.vertices, plain.vertices)
+        np.testing.assert_allclose(with_it.source_joints, joints, atol=1e-6)
+    np.testing.assert_allclose(np.stack(states), smoothed, atol=1e-6)
+    assert np.abs(with_it.vertices - without_it.vertices).max() > 1e-4
     with pytest.raises(ValueError, match="state.denoise_hidden"):
         on.state = off.state
