@@ -24,9 +24,8 @@ import numpy as np
 from minretarget.conventions import JOINT_NAMES
 from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
-from training.data.bodies import body_from_seed, pose_body, sampled_body_seeds
+from training.data.bodies import body_from_seed, posed_clouds, sampled_body_seeds
 from training.data.datasets import cmu_motions
-from training.data.sampling import sample_point_clouds
 
 
 def residuals(weights, motions, bodies, actor_hip_height, frames, points, rng):
@@ -38,8 +37,7 @@ def residuals(weights, motions, bodies, actor_hip_height, frames, points, rng):
         body = bodies[index % len(bodies)]
         rotations = np.asarray(motion.rotations[:frames], np.float32)
         root = (motion.root[:frames] * (body.hip_height / actor_hip_height)).astype(np.float32)
-        vertices, joints = pose_body(body, rotations, root)
-        clouds = sample_point_clouds(vertices, body.faces, points, rng)
+        clouds, joints = posed_clouds(body, rotations, root, points, rng)
         out.append(skeleton(clouds) - joints)
     return out
 

@@ -29,6 +29,8 @@ from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.validation import as_float32_array
 
+from .sampling import sample_point_clouds
+
 ANNY_RIG = "game_engine"
 ANNY_TOPOLOGY = "anny"
 # Bump when the way bodies are built changes: it is part of every cache key.
@@ -150,6 +152,19 @@ def pose_body(body, rotations, root):
     joints, global_rotations = forward_kinematics(rotations, root, body.joints)
     transforms = skinning_transforms(joints, global_rotations, body.joints)
     return linear_blend_skinning(body.vertices, body.weights, transforms), joints
+
+
+def posed_clouds(body, rotations, root, points, rng):
+    """A body posed (``pose_body``) and seen as a fresh area-uniform point cloud per pose
+    (``sampling.sample_point_clouds``): what a 4D capture of it would give.
+
+    Args: as ``pose_body``, plus points (P, per cloud) and a seeded numpy Generator.
+    Returns:
+        clouds: (..., P, 3) float32, metres, in random order.
+        joints: (..., J, 3) float32 posed joints, metres.
+    """
+    vertices, joints = pose_body(body, rotations, root)
+    return sample_point_clouds(vertices, body.faces, points, rng), joints
 
 
 # ----------------------------------------------------------------------------- anny

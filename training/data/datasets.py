@@ -62,7 +62,8 @@ from tqdm import tqdm
 from minretarget.conventions import FPS, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
-from .bodies import benchmark_bodies, body_from_seed, pose_body, sampled_body_seeds
+from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
+                     sampled_body_seeds)
 from .cmu import cmu_tpose_joints, list_trials, load_motion
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
@@ -197,9 +198,8 @@ def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
             rotations, root = augment(frames.rotations[frame[chunk]],
                                       frames.root[frame[chunk]] * scale,
                                       heading[chunk], shift[chunk])
-            vertices, joints = pose_body(model, rotations, root)
-            out["points"][chunk] = sample_point_clouds(vertices, model.faces, points, rng)
-            out["joints"][chunk] = joints
+            out["points"][chunk], out["joints"][chunk] = posed_clouds(model, rotations, root,
+                                                                      points, rng)
             if progress is not None:
                 progress.update(len(chunk))
     return out
@@ -301,9 +301,8 @@ def trial_sequences(frames, bodies, points, actor_hip_height, rng, progress=None
     for trial, model in enumerate(bodies[b] for b in body):
         scale = model.hip_height / actor_hip_height
         for chunk in _chunks(np.arange(frames.starts[trial], frames.starts[trial + 1])):
-            vertices, out["joints"][chunk] = pose_body(model, frames.rotations[chunk],
-                                                       frames.root[chunk] * scale)
-            out["points"][chunk] = sample_point_clouds(vertices, model.faces, points, rng)
+            out["points"][chunk], out["joints"][chunk] = posed_clouds(
+                model, frames.rotations[chunk], frames.root[chunk] * scale, points, rng)
             if progress is not None:
                 progress.update(len(chunk))
     return out
@@ -321,9 +320,8 @@ def benchmark_sequence(motion, source, target, points, actor_hip_height, rng, pr
            "target_points": np.empty((frames,) + target.vertices.shape, np.float32),
            "target_joints": np.empty((frames, NUM_JOINTS, 3), np.float32)}
     for chunk in _chunks(np.arange(frames)):
-        vertices, out["source_joints"][chunk] = pose_body(source, rotations[chunk],
-                                                          source_root[chunk])
-        out["source_points"][chunk] = sample_point_clouds(vertices, source.faces, points, rng)
+        out["source_points"][chunk], out["source_joints"][chunk] = posed_clouds(
+            source, rotations[chunk], source_root[chunk], points, rng)
         out["target_points"][chunk], out["target_joints"][chunk] = pose_body(
             target, rotations[chunk], target_root[chunk])
         if progress is not None:

@@ -16,9 +16,8 @@ from minretarget.atomic import atomic_write
 from minretarget.conventions import FPS
 from minretarget.formats.npz import NpzWriter
 
-from .bodies import TEST_SOURCE_PHENOTYPES, TEST_TARGET_PHENOTYPES, get_body, pose_body
+from .bodies import TEST_SOURCE_PHENOTYPES, TEST_TARGET_PHENOTYPES, get_body, posed_clouds
 from .cmu import cmu_tpose_joints, list_trials, load_motion
-from .sampling import sample_point_clouds
 
 SAMPLE_TRIAL = "08_01"                       # "walk", CMU subject 08: the test split
 SOURCE_BODY = "source_male_average"
@@ -49,8 +48,7 @@ def build_sample(cmu_dir, trial=SAMPLE_TRIAL, points=2048, seed=0, cache_dir=Non
                          "hold at most 65,536")
     root = motion.root * (source.hip_height / actor_hip_height)               # (T, 3)
     root[:, [0, 2]] -= (root[0, [0, 2]] + root[-1, [0, 2]]) / 2
-    vertices, _ = pose_body(source, motion.rotations, root)                   # (T, V, 3)
-    clouds = sample_point_clouds(vertices, source.faces, points, np.random.default_rng(seed))
+    clouds, _ = posed_clouds(source, motion.rotations, root, points, np.random.default_rng(seed))
     frames = len(clouds)
     metadata = {
         "description": f"CMU walk {trial} ({frames} frames, {frames / FPS:.1f} s at {FPS} fps) "
