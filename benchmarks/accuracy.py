@@ -32,7 +32,7 @@ horizontal speed of the toes over the steps where the ground truth's toes touch 
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
 If DIR/test is absent, the benchmark data is built first (python -m training.data build).
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
-well under 3 minutes. --validation: the same rows on validation trials (held-out training
+about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
 """
 import argparse
@@ -206,7 +206,7 @@ def select_sequences(paths, quick):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a fixed subset, under 3 minutes")
+    parser.add_argument("--quick", action="store_true", help="a fixed subset, about 3 minutes")
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data, to build DIR")
