@@ -194,6 +194,7 @@ def plant_feet(rotations, root, tpose, lock, fps=30.0):
                 planted[side], anchor[side] = True, toes[side] + offset[side]
             if planted[side]:
                 anchor[side] = anchor[side] + lock.anchor_follow * (filtered[side] - anchor[side])
+                anchor[side, 1] = toes[side, 1]
                 gap = anchor[side] - toes[side]
                 if np.linalg.norm(gap) > lock.max_offset:
                     anchor[side] = toes[side] + gap * lock.max_offset / np.linalg.norm(gap)
