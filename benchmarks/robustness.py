@@ -16,8 +16,8 @@ others at the benchmark's input (its stored clouds, no noise, no drop):
     points   points per source cloud: 256 ... 13,718 (the anny mesh's vertex count). The stored
              count (2048) uses the stored clouds; every other count re-samples each frame
              area-uniformly from the posed source body surface, as the data build does
-             (bodies.pose_body with the file's rotations and source root, on the cached test
-             body named by ``source_body``; sampling.sample_point_clouds), so 13,718 is a dense
+             (bodies.posed_clouds with the file's rotations and source root, on the cached test
+             body named by ``source_body``), so 13,718 is a dense
              surface sample, not the mesh vertices themselves.
     noise    i.i.d. Gaussian noise per point and axis on the stored clouds: sigma 0 ... 2 cm.
     drop     a seeded random fraction (0 ... 50 %) of frames removed from the stream; the model
@@ -46,8 +46,7 @@ import numpy as np
 from accuracy import load_sequence, run_sequence, select_sequences, sequence_metrics
 from minretarget.metrics import METRIC_NAMES, acceleration_error, procrustes_align
 from minretarget.weights import load_weights
-from training.data.bodies import benchmark_bodies, pose_body
-from training.data.sampling import sample_point_clouds
+from training.data.bodies import benchmark_bodies, posed_clouds
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
@@ -117,21 +116,6 @@ def gap_free_acceleration(pred, gt, centres):
             acceleration_error(stacked(aligned), stacked(gt)))
 
 
-def surface_clouds(body, rotations, root, count, rng):
-    """Fresh area-uniform clouds of a posed body, as the data build samples its source clouds.
-
-    Args:
-        body: a ``training.data.bodies.Body``.
-        rotations: (T, J, 4) float32 local quaternions; root: (T, 3) float32 pelvis, metres.
-        count: P, points per cloud.
-        rng: numpy Generator.
-    Returns:
-        clouds (T, P, 3) float32 and the posed joints (T, J, 3) float32, metres.
-    """
-    vertices, joints = pose_body(body, rotations, root)
-    return sample_point_clouds(vertices, body.faces, count, rng), joints
-
-
 # ----------------------------------------------------------------------------- conditions
 
 def conditions(stored_points):
@@ -165,7 +149,7 @@ def perturb(sequence, condition, index, seed, bodies):
     frames = len(sequence["source_points"])
     out = dict(sequence)
     if points is not None:
-        out["source_points"], joints = surface_clouds(
+        out["source_points"], joints = posed_clouds(
             bodies[str(sequence["source_body"])], sequence["rotations"],
             sequence["source_root"], points, np.random.default_rng([seed, 0, index, points]))
         error = np.abs(joints - sequence["source_joints"]).max()

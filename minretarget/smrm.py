@@ -62,7 +62,8 @@ class MotionState(NamedTuple):
     frames_seen: int
     # Foot contacts (``minretarget.contacts``), per leg (left, right):
     toe_filtered: np.ndarray     # (2, 3) float32 the target's low-passed toe positions, metres
-    toe_anchor: np.ndarray       # (2, 3) float32 where each planted toe stays, metres
+    toe_anchor: np.ndarray       # (2, 3) float32 where each planted toe stays over the ground
+                                 # (its height is SMRM's), metres
     foot_offset: np.ndarray      # (2, 3) float32 the move the feet get from the lock, metres
     feet_planted: np.ndarray     # (2,) bool
 

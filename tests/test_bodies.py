@@ -148,3 +148,30 @@ def test_test_bodies_span_the_protocol(tmp_path_factory):
     assert max(p["weight"] for p in slim) < min(p["weight"] for p in heavy)
     assert max(p["height"] for p in slim) < min(p["height"] for p in heavy)
     assert not set(phenotypes) & set(bodies.TEST_SOURCE_PHENOTYPES)
+
+
+def _square_body():
+    """A 1 m square in the z = 0 plane, every vertex bound to the pelvis."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    weights = np.zeros((4, NUM_JOINTS), np.float32)
+    weights[:, 0] = 1
+    joints = np.zeros((NUM_JOINTS, 3), np.float32)
+    joints[:, 1] = np.linspace(0, 1, NUM_JOINTS)
+    return bodies.Body("square", {}, vertices, np.array([[0, 1, 2], [0, 2, 3]], np.int32),
+                       joints, weights)
+
+
+def test_posed_clouds_lie_on_the_posed_surface():
+    """Fresh area-uniform clouds of a posed body (a square bound to the pelvis, shifted),
+    reproducible from the seed, and its posed joints."""
+    body = _square_body()
+    rotations = np.tile(np.array([1, 0, 0, 0], np.float32), (3, NUM_JOINTS, 1))
+    root = np.array([[0, 0, 0], [0, 0, 1], [2, 0, 0]], np.float32)   # T-pose, shifted
+    clouds, joints = bodies.posed_clouds(body, rotations, root, 100, np.random.default_rng(0))
+    assert clouds.shape == (3, 100, 3) and clouds.dtype == np.float32
+    np.testing.assert_allclose(joints[:, 0], root, atol=1e-6)
+    local = clouds - (root - body.joints[0])[:, None]
+    assert np.all((local[..., :2] >= -1e-6) & (local[..., :2] <= 1 + 1e-6))
+    np.testing.assert_allclose(local[..., 2], 0, atol=1e-6)
+    again, _ = bodies.posed_clouds(body, rotations, root, 100, np.random.default_rng(0))
+    np.testing.assert_array_equal(clouds, again)

@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 
 from minretarget.conventions import NUM_JOINTS
 from minretarget.metrics import acceleration_error, pa_acceleration_error
-from training.data.bodies import Body
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import robustness  # noqa: E402
@@ -90,32 +89,6 @@ def test_gap_free_acceleration_ignores_gaps():
     pred[2:4, :, 0] = 0.0
     assert robustness.gap_free_acceleration(pred, gt, centres)[0] == 0.0
     assert np.isnan(robustness.gap_free_acceleration(pred, gt, [])).all()
-
-
-def _square_body():
-    """A 1 m square in the z = 0 plane, every vertex bound to the pelvis."""
-    vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
-    weights = np.zeros((4, NUM_JOINTS), np.float32)
-    weights[:, 0] = 1
-    joints = np.zeros((NUM_JOINTS, 3), np.float32)
-    joints[:, 1] = np.linspace(0, 1, NUM_JOINTS)
-    return Body("square", {}, vertices, np.array([[0, 1, 2], [0, 2, 3]], np.int32), joints,
-                weights)
-
-
-def test_surface_clouds_on_the_posed_surface():
-    body = _square_body()
-    rotations = np.tile(np.array([1, 0, 0, 0], np.float32), (3, NUM_JOINTS, 1))
-    root = np.array([[0, 0, 0], [0, 0, 1], [2, 0, 0]], np.float32)   # T-pose, shifted
-    clouds, joints = robustness.surface_clouds(body, rotations, root, 100,
-                                               np.random.default_rng(0))
-    assert clouds.shape == (3, 100, 3) and clouds.dtype == np.float32
-    np.testing.assert_allclose(joints[:, 0], root, atol=1e-6)
-    local = clouds - (root - body.joints[0])[:, None]
-    assert np.all((local[..., :2] >= -1e-6) & (local[..., :2] <= 1 + 1e-6))
-    np.testing.assert_allclose(local[..., 2], 0, atol=1e-6)
-    again, _ = robustness.surface_clouds(body, rotations, root, 100, np.random.default_rng(0))
-    np.testing.assert_array_equal(clouds, again)
 
 
 def test_conditions_share_the_benchmark_input():

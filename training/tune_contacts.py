@@ -30,9 +30,9 @@ from minretarget.weights import flatten_weights, load_weights
 from training.data.datasets import validation_sequences
 
 TRIALS, MAX_FRAMES, CONTACT_HEIGHT = 12, 240, 0.03
-GRID = {"plant_speed": (1.0, 2.0), "lift_speed": (2.0,), "speed_cutoff": (12.0,),
+GRID = {"plant_speed": (1.0, 2.0, 3.0), "lift_speed": (2.0, 3.0), "speed_cutoff": (12.0,),
         "height_margin": (0.05,), "max_offset": (0.01, 0.02, 0.03, 0.05, 0.1),
-        "release_decay": (0.5,), "anchor_follow": (0.05, 0.1, 0.2, 0.3, 0.4)}
+        "release_decay": (0.5,), "anchor_follow": (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4)}
 
 
 def validation_streams(weights, cmu_dir, cache_dir):
@@ -100,8 +100,8 @@ def main(argv=None):
     streams = validation_streams(weights, args.cmu, args.cache)
     none = score(weights, streams, None)
     print(f"{'setting':<60} toe speed (truth)  MPJPE  PA-MPJPE  Acc")
-    print(f"{'no foot lock':<60} {none[0]:.3f} ({none[1]:.3f})  {none[2]:.4f}  {none[3]:.4f}  "
-          f"{none[4]:.4f}", flush=True)
+    print(f"{'no foot lock':<60} {none[0]:.3f} ({none[1]:.3f})  {none[2]:.5f}  {none[3]:.5f}  "
+          f"{none[4]:.5f}", flush=True)
     results = []
     for values in itertools.product(*GRID.values()):
         lock = FootLock(**dict(zip(GRID, values)))
@@ -109,15 +109,15 @@ def main(argv=None):
             continue
         result = score(weights, streams, lock)
         results.append((lock, result))
-        print(f"{str(tuple(lock)):<60} {result[0]:.3f} ({result[1]:.3f})  {result[2]:.4f}  "
-              f"{result[3]:.4f}  {result[4]:.4f}", flush=True)
+        print(f"{str(tuple(lock)):<60} {result[0]:.3f} ({result[1]:.3f})  {result[2]:.5f}  "
+              f"{result[3]:.5f}  {result[4]:.5f}", flush=True)
     fitting = [(lock, result) for lock, result in results if result[0] <= result[1]]
     if not fitting:
         sys.exit("no setting keeps the toes as still as the truth's")
     lock, result = min(fitting, key=lambda item: item[1][3])
     print(f"chosen: {lock}\n  toe speed {result[0]:.3f} m/s (truth {result[1]:.3f}, no lock "
-          f"{none[0]:.3f}); MPJPE {none[2]:.4f} -> {result[2]:.4f}, PA-MPJPE {none[3]:.4f} -> "
-          f"{result[3]:.4f}, Acc {none[4]:.4f} -> {result[4]:.4f}")
+          f"{none[0]:.3f}); MPJPE {none[2]:.5f} -> {result[2]:.5f}, PA-MPJPE {none[3]:.5f} -> "
+          f"{result[3]:.5f}, Acc {none[4]:.5f} -> {result[4]:.5f}")
 
 
 if __name__ == "__main__":
