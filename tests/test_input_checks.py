@@ -321,8 +321,7 @@ def test_recording_refuses_a_broken_file(default_weights, capsys):
 
 
 def test_the_shipped_default_weights_match_their_checksum():
-    if not weights.DEFAULT_WEIGHTS.is_file():
-        pytest.skip("the default weights are not shipped yet")
+    assert weights.DEFAULT_WEIGHTS.is_file(), "the default weights must ship with the package"
     weights.verify_checksum(weights.DEFAULT_WEIGHTS)
 
 
