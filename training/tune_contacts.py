@@ -90,6 +90,12 @@ def score(weights, streams, foot_lock):
     return speed / steps, truth_speed / steps, *(errors / frames)
 
 
+def report(label, result):
+    """One printed row: toe speed (the truth's), then MPJPE, PA-MPJPE and Acc."""
+    speed, truth, *errors = result
+    return f"{label:<60} {speed:.3f} ({truth:.3f})  " + "  ".join(f"{e:.5f}" for e in errors)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
@@ -100,8 +106,7 @@ def main(argv=None):
     streams = validation_streams(weights, args.cmu, args.cache)
     none = score(weights, streams, None)
     print(f"{'setting':<60} toe speed (truth)  MPJPE  PA-MPJPE  Acc")
-    print(f"{'no foot lock':<60} {none[0]:.3f} ({none[1]:.3f})  {none[2]:.5f}  {none[3]:.5f}  "
-          f"{none[4]:.5f}", flush=True)
+    print(report("no foot lock", none), flush=True)
     results = []
     for values in itertools.product(*GRID.values()):
         lock = FootLock(**dict(zip(GRID, values)))
@@ -109,8 +114,7 @@ def main(argv=None):
             continue
         result = score(weights, streams, lock)
         results.append((lock, result))
-        print(f"{str(tuple(lock)):<60} {result[0]:.3f} ({result[1]:.3f})  {result[2]:.5f}  "
-              f"{result[3]:.5f}  {result[4]:.5f}", flush=True)
+        print(report(str(tuple(lock)), result), flush=True)
     fitting = [(lock, result) for lock, result in results if result[0] <= result[1]]
     if not fitting:
         sys.exit("no setting keeps the toes as still as the truth's")
