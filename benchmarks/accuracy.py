@@ -2,6 +2,7 @@
 
     python benchmarks/accuracy.py [--quick | --validation] [--rows ROW ...] [--weights FILE]
                                   [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
+    python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md]
 
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
@@ -31,6 +32,11 @@ Every row but ``paper`` is averaged over frames. A second table gives foot slidi
 horizontal speed of the toes over the steps where the ground truth's toes touch the ground
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
 If DIR/test is absent, the benchmark data is built first (python -m training.data build).
+A third compares the model with the analytic baseline, sequence by sequence: for each metric
+the frame-weighted difference (model minus analytic; below zero, the model is better), its 95 %
+interval from a bootstrap over the sequences (``paired_difference``), and on how many
+sequences the model is better. --from-json OUT.json prints every table again from a saved
+run, computing nothing.
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
@@ -46,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from minretarget.analytic import analytic_rotations
+from minretarget.atomic import atomic_write
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
 from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts, foot_speeds
 from minretarget.retargeter import Retargeter
@@ -59,6 +66,7 @@ ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock
         "model, paper pipeline", "analytic", "oracle source", "oracle target", "oracle both")
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
+BOOTSTRAP_SAMPLES = 10_000
 
 
 def load_sequence(path, frames=None):
@@ -172,6 +180,35 @@ def frame_weighted(results, keys=None):
                   for m in METRIC_NAMES} for row in chosen[0]["metrics"]}
 
 
+def paired_difference(results, row, baseline, samples=BOOTSTRAP_SAMPLES, seed=0):
+    """``row`` against ``baseline`` over the per-sequence results, per metric: the
+    frame-weighted difference of their means (row minus baseline), its 95 % bootstrap interval
+    (``samples`` resamplings of the sequences with replacement, the same draws for every
+    metric, seeded) and the number of sequences where ``row`` is lower (better)."""
+    frames = np.array([r["frames"] for r in results], dtype=np.float64)
+    draws = np.random.default_rng(seed).integers(len(results), size=(samples, len(results)))
+    drawn_frames = frames[draws].sum(axis=1)
+    out = {}
+    for metric in METRIC_NAMES:
+        gap = np.array([r["metrics"][row][metric] - r["metrics"][baseline][metric]
+                        for r in results])
+        resampled = (gap[draws] * frames[draws]).sum(axis=1) / drawn_frames
+        low, high = np.percentile(resampled, [2.5, 97.5])
+        out[metric] = {"difference": float(gap @ frames / frames.sum()),
+                       "ci95": [float(low), float(high)], "sequences_better": int((gap < 0).sum()),
+                       "sequences": len(results)}
+    return out
+
+
+def comparison_table(comparison, title):
+    lines = [f"**{title}**", "", "| metric | difference | 95 % interval | sequences better |",
+             "|---|---|---|---|"]
+    for metric, c in comparison.items():
+        lines.append(f"| {metric} | {c['difference']:+.5f} | [{c['ci95'][0]:+.5f}, "
+                     f"{c['ci95'][1]:+.5f}] | {c['sequences_better']} of {c['sequences']} |")
+    return "\n".join(lines)
+
+
 def markdown_table(rows, title):
     lines = [f"**{title}**", "", "| row | " + " | ".join(METRIC_NAMES) + " |",
              "|---|" + "---|" * len(METRIC_NAMES)]
@@ -189,6 +226,13 @@ def feet_table(feet):
     for name in feet["all"]:
         lines.append(f"| {name} | " + " | ".join(f"{feet[c][name]:.3f}" for c in columns) + " |")
     return "\n".join(lines)
+
+
+def write_text(path, text):
+    """Write ``text`` to ``path`` through a temporary file: a saved run is never half written
+    (``--from-json X --json X`` rewrites X in place)."""
+    with atomic_write(path) as file:
+        file.write(text.encode())
 
 
 def select_sequences(paths, quick):
@@ -218,7 +262,20 @@ def main(argv=None):
                         help="the rows to compute, each quoted (default: all; model always)")
     parser.add_argument("--json", help="write the results as JSON here")
     parser.add_argument("--markdown", help="write the tables as markdown here")
+    parser.add_argument("--from-json", metavar="SAVED.json",
+                        help="print the tables of a saved run (its per-sequence results) "
+                             "instead of running; with --json, write it back with them")
     args = parser.parse_args(argv)
+    if args.from_json:
+        saved = json.loads(Path(args.from_json).read_text())
+        summary = summarize(saved["per_sequence"], saved["split"])
+        text = summary.pop("text")
+        print(text)
+        if args.markdown:
+            write_text(args.markdown, text + "\n")
+        if args.json:
+            write_text(args.json, json.dumps({**saved, **summary}, indent=2))
+        return
     wanted = ["model"] + [row for row in args.rows if row != "model"]
     test_dir = Path(args.data) / "test"
     if not args.validation and not test_dir.is_dir():
@@ -246,14 +303,31 @@ def main(argv=None):
               f"({results[-1]['frames']} frames): model MPJPE "
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
 
+    seconds = time.perf_counter() - started
+    summary = summarize(results, "validation" if args.validation else "test")
+    text = summary.pop("text")
+    total_frames = summary["frames"]
+    print(text)
+    print(f"\n{total_frames} frames in {seconds:.0f} s; model (all stages; SKR and refiner "
+          f"batched over the frames) {1e3 * model_seconds / total_frames:.1f} ms per frame")
+    if args.markdown:
+        write_text(args.markdown, text + "\n")
+    if args.json:
+        write_text(args.json, json.dumps(
+            {**summary, "per_sequence": results, "weights": args.weights or "shipped default",
+             "weights_metadata": weights.metadata, "quick": args.quick,
+             "seconds": round(seconds, 1)}, indent=2))
+
+
+def summarize(results, split):
+    """The tables of a run from its per-sequence results: a dict of the JSON's summary fields
+    and ``text``, the markdown of every table."""
     overall = {**frame_weighted(results), "paper": PAPER}
     total_frames = sum(r["frames"] for r in results)
     by_body = {body: frame_weighted(results, lambda r, b=body: r["target_body"] == b)
                for body in sorted({r["target_body"] for r in results})}
     by_category = {c: frame_weighted(results, lambda r, c=c: r["category"] == c)
                    for c in sorted({r["category"] for r in results})}
-    seconds = time.perf_counter() - started
-    split = "validation" if args.validation else "test"
     sections = [markdown_table(overall, f"All {split} sequences ({len(results)} sequences, "
                                         f"{total_frames} frames; paper: its own test set)")]
     sections += [markdown_table(rows, f"Target body {body}") for body, rows in by_body.items()]
@@ -262,20 +336,15 @@ def main(argv=None):
     feet = {"all": pooled_feet(results), **{c: pooled_feet(results, lambda r, c=c: r["category"]
                                                            == c) for c in categories}}
     sections.append(feet_table(feet))
-    text = "\n\n".join(sections)
-    print(text)
-    print(f"\n{total_frames} frames in {seconds:.0f} s; model (all stages; SKR and refiner batched over the frames) "
-          f"{1e3 * model_seconds / total_frames:.1f} ms per frame")
-    if args.markdown:
-        Path(args.markdown).write_text(text + "\n")
-    if args.json:
-        Path(args.json).write_text(json.dumps(
-            {"rows": overall, "frames": total_frames, "sequences": len(results),
-             "by_target_body": by_body, "by_category": by_category,
-             "feet_on_truth_contacts": feet,
-             "per_sequence": results, "weights": args.weights or "shipped default",
-             "weights_metadata": weights.metadata, "quick": args.quick, "split": split,
-             "seconds": round(seconds, 1)}, indent=2))
+    against = None
+    if "analytic" in results[0]["metrics"]:
+        against = paired_difference(results, "model", "analytic")
+        sections.append(comparison_table(against, "Model minus analytic, per sequence "
+                                                  "(frame-weighted; below zero: model better)"))
+    return {"rows": overall, "frames": total_frames, "sequences": len(results),
+            "by_target_body": by_body, "by_category": by_category,
+            "feet_on_truth_contacts": feet, "model_minus_analytic": against, "split": split,
+            "text": "\n\n".join(sections)}
 
 
 if __name__ == "__main__":

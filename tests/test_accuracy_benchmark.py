@@ -1,0 +1,61 @@
+"""The bookkeeping of benchmarks/accuracy.py: the paired comparison with the analytic baseline
+and the tables of a saved run, on hand-made per-sequence results."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from minretarget.metrics import METRIC_NAMES
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import accuracy  # noqa: E402
+
+
+def results(gaps, frames, base=1.0):
+    """Per-sequence results whose model scores ``base + gap`` and analytic ``base`` on every
+    metric; toe speeds are placeholders the tables need."""
+    return [{"sequence": f"s{k}", "category": "walk", "target_body": "b", "frames": n,
+             "metrics": {"model": dict.fromkeys(METRIC_NAMES, base + gap),
+                         "analytic": dict.fromkeys(METRIC_NAMES, base)},
+             "feet": {"model": [1.0, 2], "analytic": [2.0, 2], "ground truth": [0.5, 2]}}
+            for k, (gap, n) in enumerate(zip(gaps, frames))]
+
+
+def test_paired_difference_by_hand():
+    """Gaps -1 (1 frame) and +1 (3 frames): frame-weighted +0.5; every resample lies between
+    the two gaps; one sequence of two is better."""
+    out = accuracy.paired_difference(results([-1.0, 1.0], [1, 3]), "model", "analytic",
+                                     samples=2000)
+    for metric in METRIC_NAMES:
+        assert out[metric]["difference"] == pytest.approx(0.5)
+        low, high = out[metric]["ci95"]
+        assert -1.0 <= low < 0.5 < high <= 1.0
+        assert (out[metric]["sequences_better"], out[metric]["sequences"]) == (1, 2)
+
+
+def test_a_constant_gap_has_no_spread_and_the_draws_are_seeded():
+    saved = results([-0.25] * 5, [10, 20, 30, 40, 50])
+    out = accuracy.paired_difference(saved, "model", "analytic")
+    assert out["MPJPE"]["ci95"] == pytest.approx([-0.25, -0.25])
+    assert out["MPJPE"]["sequences_better"] == 5
+    varied = results([-0.3, 0.1, 0.2, -0.5, 0.05], [10, 20, 30, 40, 50])
+    assert (accuracy.paired_difference(varied, "model", "analytic")
+            == accuracy.paired_difference(varied, "model", "analytic"))
+
+
+def test_from_json_prints_a_saved_run_and_adds_its_tables(tmp_path, capsys):
+    """--from-json recomputes nothing: the rows are the saved per-sequence metrics weighted
+    by frames, and --json writes the run back with the comparison added."""
+    saved = {"per_sequence": results([-0.1, 0.3], [3, 1], base=2.0), "split": "test",
+             "weights": "w"}
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(saved))
+    accuracy.main(["--from-json", str(path), "--json", str(path)])
+    printed = capsys.readouterr().out
+    assert "Model minus analytic" in printed
+    written = json.loads(path.read_text())
+    assert written["weights"] == "w" and written["per_sequence"] == saved["per_sequence"]
+    assert written["rows"]["model"]["MPJPE"] == pytest.approx(2.0 + (-0.1 * 3 + 0.3) / 4)
+    assert written["model_minus_analytic"]["PA-MPJPE"]["difference"] == pytest.approx(0.0)
+    assert written["feet_on_truth_contacts"]["all"]["model"] == pytest.approx(0.5)
