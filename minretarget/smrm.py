@@ -29,7 +29,7 @@ from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
-from .denoise import DenoiserWeights, _denoise_kernel, hidden_shape
+from .denoise import DenoiserWeights, _denoise_mirror_averaged_kernel, hidden_shape
 from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
@@ -57,7 +57,8 @@ class MotionState(NamedTuple):
     smoothed_joints: np.ndarray  # (J, 3) float32 the smoothing's last output, metres (the
                                  # same as previous_joints with no denoiser)
     joint_velocity: np.ndarray   # (J, 3) float32 its velocity estimate (smoothing), m/s
-    denoise_hidden: np.ndarray   # (layers, H) float32 the denoiser's GRU; (0, 0) without one
+    denoise_hidden: np.ndarray   # (2, layers, H) float32 the denoiser's GRUs (the skeleton's
+                                 # and its mirror image's); (2, 0, 0) without one
     source_leg_length: float     # mean source leg length over the frames seen, metres
     frames_seen: int
     # Foot contacts (``minretarget.contacts``), per leg (left, right):
@@ -139,7 +140,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     seen, denoise_hidden = smoothed, state.denoise_hidden
     if denoiser is not None:
         denoise_hidden = denoise_hidden.copy()
-        seen = _denoise_kernel(denoiser, smoothed, state.smoothed_joints[0], denoise_hidden)
+        seen = _denoise_mirror_averaged_kernel(denoiser, smoothed, state.smoothed_joints[0],
+                                               denoise_hidden)
     encoder_hidden = state.encoder_hidden.copy()
     decoder_hidden = state.decoder_hidden.copy()
     # At a stream's start the root has not moved: its previous place is its own (denoised).

@@ -147,6 +147,9 @@ def test_denoiser_matches_twin_and_turns_with_the_body(tiny_weights):
     moved = (frames @ turn.T + [3.0, 0.0, -2.0]).astype(np.float32)
     np.testing.assert_allclose(denoised_stream(tiny_weights.denoise, moved),
                                denoised @ turn.T + [3.0, 0.0, -2.0], atol=1e-4)
+    # Mirror-averaged: the mirror image's stream gets the mirrored corrections, exactly.
+    np.testing.assert_allclose(denoised_stream(tiny_weights.denoise, twins.mirrored(frames)),
+                               twins.mirrored(denoised), atol=1e-5)
 
 
 def test_retarget_step_denoises_after_smoothing_and_before_smrm(tiny_weights):

@@ -5,7 +5,7 @@ and its twin can only agree if both implement the same equations.
 """
 import numpy as np
 
-from minretarget.conventions import PARENTS
+from minretarget.conventions import MIRROR, PARENTS
 
 
 def quaternion_to_matrix(q):
@@ -99,8 +99,19 @@ def heading_features(joints, previous_root):
     return features, turn
 
 
+def mirrored(joints):
+    """(..., J, 3) joints of the mirror image: x -> -x, left and right joints swapped."""
+    return joints[..., list(MIRROR), :] * np.array([-1.0, 1.0, 1.0], joints.dtype)
+
+
 def denoise(frames, weights):
-    """(T, J, 3) a stream's source joints -> the denoiser's output (T, J, 3), from zeros."""
+    """(T, J, 3) a stream's source joints -> the denoiser's output (T, J, 3), from zeros: the
+    average of one view's on the frames and, mirrored back, on their mirror images."""
+    return (_denoise_one_view(frames, weights)
+            + mirrored(_denoise_one_view(mirrored(frames), weights))) / 2
+
+
+def _denoise_one_view(frames, weights):
     hidden = np.zeros((len(weights.gru), 1, weights.gru[0].hidden_weight.shape[0]))
     out, previous_root = [], frames[0, 0]
     for joints in frames:

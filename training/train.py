@@ -373,7 +373,8 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
     """The skeleton denoiser on the smoothed skeletons of the trained SKR (and refiner) of
     whole trials (``sequences_*.npz``, computed once, as the runtime sees them): the mean
     joint error plus ``acceleration`` times the mean acceleration error, against the true
-    joints, on random windows; half of them mirrored (left and right swapped)."""
+    joints, on random windows; half of them mirrored (left and right swapped). Validation
+    scores it as the runtime runs it, mirror-averaged."""
     stage_recipe = recipe.denoise
     skr_weights = skr_runtime_weights(skr.cpu().eval())
     refine_weights = None if refine is None else refine_runtime_weights(refine.cpu().eval())
@@ -424,7 +425,7 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
             if b - a < 3:
                 continue
             skeleton, joints = val["skeleton"][a:b][None], val["joints"][a:b][None]
-            denoised = model(skeleton)[0]
+            denoised = model.mirror_averaged(skeleton)[0]      # as the runtime runs it
             totals += (b - a) * torch.tensor([*map(float, denoise_losses(denoised, joints)),
                                               *map(float, denoise_losses(skeleton, joints))])
             frames += b - a

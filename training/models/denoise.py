@@ -1,9 +1,12 @@
 """Stage 1d, the skeleton denoiser (minretarget.denoise's torch twin): a GRU over the smoothed
-source skeletons, in SMRM's heading frame, that predicts a correction of every joint."""
+source skeletons, in SMRM's heading frame, that predicts a correction of every joint. It trains
+on one view (``forward``); the runtime runs it on the skeleton and on its mirror image and
+averages (``mirror_averaged``)."""
 import torch
 from torch import nn
 
 from minretarget.config import ModelConfig
+from minretarget.conventions import LEFT_AXIS, MIRROR
 from .smrm import motion_features, turn_vectors
 
 
@@ -36,3 +39,24 @@ class SkeletonDenoiser(nn.Module):
         out, hidden = self.gru(features, hidden)
         offsets = self.head(out).view(joints.shape)
         return joints + turn_vectors(offsets, sin_cos), hidden
+
+    def mirror_averaged(self, joints, previous_root=None, hidden=None):
+        """``forward`` on the clip and on its mirror image (x -> -x, left and right joints
+        swapped), each with its own GRU state, the second mirrored back and averaged: what
+        the runtime runs (``minretarget.denoise``).
+
+        Args: as ``forward``, but ``hidden`` (2, layers, B, H), the two views' states.
+        Returns: the denoised joints (B, T, J, 3) and the states after the last frame
+            (2, layers, B, H).
+        """
+        flip = torch.ones(3, dtype=joints.dtype, device=joints.device)
+        flip[LEFT_AXIS] = -1.0
+
+        def mirrored(x):
+            return x[..., list(MIRROR), :] * flip
+
+        plain, hidden_plain = self(joints, previous_root, None if hidden is None else hidden[0])
+        other, hidden_other = self(mirrored(joints),
+                                   None if previous_root is None else previous_root * flip,
+                                   None if hidden is None else hidden[1])
+        return (plain + mirrored(other)) / 2, torch.stack([hidden_plain, hidden_other])

@@ -57,7 +57,8 @@ class ReferenceRetargeter(nn.Module):
         if self.denoise is not None:
             hidden, previous_root = (None, None) if denoise_state is None else denoise_state
             raw_root = source_joints[:, 0]
-            denoised, hidden = self.denoise(source_joints[:, None], previous_root, hidden)
+            denoised, hidden = self.denoise.mirror_averaged(source_joints[:, None],
+                                                            previous_root, hidden)
             source_joints, denoise_state = denoised[:, 0], (hidden, raw_root)
         rotations, root, joints, smrm_state = self.smrm(
             source_joints[:, None], self.tpose_joints[None], smrm_state)
