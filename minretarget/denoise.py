@@ -71,7 +71,7 @@ def denoise_joints(weights, hidden, joints, previous_root):
 @kernel
 def _mirrored(joints):
     """(J, 3) joints of the mirror image: x -> -x, left and right joints swapped."""
-    out = joints[_MIRROR].copy()
+    out = joints[_MIRROR]                   # fancy indexing: already a copy
     out[:, LEFT_AXIS] = -out[:, LEFT_AXIS]
     return out
 

@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from minretarget.atomic import atomic_write
-from minretarget.conventions import MIRROR, NUM_JOINTS
+from minretarget.conventions import NUM_JOINTS
 from minretarget.refine import refine_joints
 from minretarget.skr import regress_joints
 from minretarget.smoothing import Smoothing, smooth_joints
@@ -42,6 +42,7 @@ from training.losses import (denoise_losses, discriminator_loss, skin_loss, skr_
                              smrm_losses)
 from training.models import (JointRefiner, MotionDiscriminator, MotionRetargeter,
                              SkeletonDenoiser, SkeletonRegressor, SkinningField)
+from training.models.denoise import mirror_image
 from training.recipe import load_recipe
 
 # refine and denoise only where the config has a refiner and a denoiser
@@ -396,9 +397,6 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     stage = Stage("denoise", run_dir, {"denoise": model}, {"denoise": optimizer},
                   stage_recipe.steps, stage_recipe.eval_every, recipe.seed + 4)
-    mirror = torch.tensor(MIRROR)
-    flip = torch.tensor([-1.0, 1.0, 1.0], device=device)
-
     def train_step(stage):
         trial = usable[stage.batch(len(usable), stage_recipe.batch_size)]
         offset = (torch.rand(len(trial), generator=stage.generator)
@@ -406,10 +404,9 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
         frames = (starts[trial] + offset)[:, None] + torch.arange(stage_recipe.window)
         skeleton, joints = train["skeleton"][frames], train["joints"][frames]
         mirrored = (torch.rand(len(trial), generator=stage.generator) < 0.5).to(device)
-        turn = torch.where(mirrored[:, None, None, None], flip, 1.0)
-        skeleton = torch.where(mirrored[:, None, None, None], skeleton[:, :, mirror], skeleton)
-        joints = torch.where(mirrored[:, None, None, None], joints[:, :, mirror], joints)
-        position, acceleration = denoise_losses(model(skeleton * turn)[0], joints * turn)
+        skeleton = torch.where(mirrored[:, None, None, None], mirror_image(skeleton), skeleton)
+        joints = torch.where(mirrored[:, None, None, None], mirror_image(joints), joints)
+        position, acceleration = denoise_losses(model(skeleton)[0], joints)
         loss = position + stage_recipe.acceleration * acceleration
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

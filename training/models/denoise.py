@@ -49,14 +49,17 @@ class SkeletonDenoiser(nn.Module):
         Returns: the denoised joints (B, T, J, 3) and the states after the last frame
             (2, layers, B, H).
         """
-        flip = torch.ones(3, dtype=joints.dtype, device=joints.device)
-        flip[LEFT_AXIS] = -1.0
-
-        def mirrored(x):
-            return x[..., list(MIRROR), :] * flip
-
         plain, hidden_plain = self(joints, previous_root, None if hidden is None else hidden[0])
-        other, hidden_other = self(mirrored(joints),
-                                   None if previous_root is None else previous_root * flip,
+        other, hidden_other = self(mirror_image(joints),
+                                   None if previous_root is None else mirror_image(previous_root,
+                                                                                   joints=False),
                                    None if hidden is None else hidden[1])
-        return (plain + mirrored(other)) / 2, torch.stack([hidden_plain, hidden_other])
+        return (plain + mirror_image(other)) / 2, torch.stack([hidden_plain, hidden_other])
+
+
+def mirror_image(x, joints=True):
+    """(..., J, 3) joints (or, with ``joints=False``, (..., 3) points) of the mirror image:
+    x -> -x, and left and right joints swapped."""
+    flip = torch.ones(3, dtype=x.dtype, device=x.device)
+    flip[LEFT_AXIS] = -1.0
+    return (x[..., list(MIRROR), :] if joints else x) * flip
