@@ -96,6 +96,18 @@ def score(weights, streams, foot_lock):
     return speed / steps, truth_speed / steps, *(errors / frames)
 
 
+def choose(results, tie=TIE):
+    """The module's choice rule over ``results`` [(setting, score(...))]: the (setting, score)
+    whose toes move slowest among those no faster than the truth's on its contacts and within
+    ``tie`` metres of their least PA-MPJPE; None if no setting is as still as the truth."""
+    fitting = [(setting, result) for setting, result in results if result[0] <= result[1]]
+    if not fitting:
+        return None
+    least = min(result[3] for _, result in fitting)
+    return min(((setting, result) for setting, result in fitting if result[3] <= least + tie),
+               key=lambda item: item[1][0])
+
+
 def report(label, result):
     """One printed row: toe speed (the truth's), then MPJPE, PA-MPJPE and Acc."""
     speed, truth, *errors = result
@@ -121,12 +133,10 @@ def main(argv=None):
         result = score(weights, streams, lock)
         results.append((lock, result))
         print(report(str(tuple(lock)), result), flush=True)
-    fitting = [(lock, result) for lock, result in results if result[0] <= result[1]]
-    if not fitting:
+    chosen = choose(results)
+    if chosen is None:
         sys.exit("no setting keeps the toes as still as the truth's")
-    least = min(result[3] for _, result in fitting)
-    lock, result = min(((lock, result) for lock, result in fitting if result[3] <= least + TIE),
-                       key=lambda item: item[1][0])
+    lock, result = chosen
     print(f"chosen: {lock}\n  toe speed {result[0]:.3f} m/s (truth {result[1]:.3f}, no lock "
           f"{none[0]:.3f}); MPJPE {none[2]:.5f} -> {result[2]:.5f}, PA-MPJPE {none[3]:.5f} -> "
           f"{result[3]:.5f}, Acc {none[4]:.5f} -> {result[4]:.5f}")
