@@ -71,8 +71,11 @@ def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights
     """tests/golden was made from this reference; regenerate it (make_golden.py) if this fails."""
     target, sources, golden = tiny_stream
     want = reference_outputs(tiny_model, target, sources)
+    # 1e-5 m: torch's float32 kernels round differently on different CPUs (2.3e-6 m on
+    # vertices 2 m from the origin, 10 float32 steps, between two machines of this project);
+    # a change to the reference itself moves them by far more.
     for key, value in want.items():
-        np.testing.assert_allclose(golden[f"torch_{key}"], value, atol=1e-6, err_msg=key)
+        np.testing.assert_allclose(golden[f"torch_{key}"], value, atol=1e-5, err_msg=key)
     exported = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin,
                                refine=tiny_model.refine, denoise=tiny_model.denoise)
     flat = lambda weights: np.concatenate([np.ravel(a) for a in leaves(weights)])  # noqa: E731
