@@ -22,6 +22,7 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     analytic             the model's (smoothed, denoised) source bones, each target bone
                          rotated onto its source bone (minretarget.analytic), FK, LBS with
                          SKIN weights: no SMRM
+    analytic, mirrored source  the same on the mirrored source row's skeletons
     oracle source        ground-truth source joints instead of SKR (not smoothed or denoised;
                          foot lock on)
     oracle target        ground-truth target T-pose joints and skinning weights instead of
@@ -32,10 +33,10 @@ Every row but ``paper`` is averaged over frames. A second table gives foot slidi
 horizontal speed of the toes over the steps where the ground truth's toes touch the ground
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
 If DIR/test is absent, the benchmark data is built first (python -m training.data build).
-A third compares the model with the analytic baseline, sequence by sequence: for each metric
-the frame-weighted difference (model minus analytic; below zero, the model is better), its 95 %
-interval from a bootstrap over the sequences (``paired_difference``), and on how many
-sequences the model is better. --from-json OUT.json prints every table again from a saved
+A third compares the model with the analytic baseline, sequence by sequence (and the mirrored
+source rows likewise, ``PAIRS``): for each metric the frame-weighted difference (model minus
+analytic; below zero, the model is better), its 95 % interval from a bootstrap over the
+sequences (``paired_difference``), and on how many sequences the model is better. --from-json OUT.json prints every table again from a saved
 run, computing nothing.
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
@@ -63,10 +64,13 @@ PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD
          "PA-MPVD": 0.058, "MEDL": 0.001}
 ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock",
         "model, mirrored source",
-        "model, paper pipeline", "analytic", "oracle source", "oracle target", "oracle both")
+        "model, paper pipeline", "analytic", "analytic, mirrored source", "oracle source",
+        "oracle target", "oracle both")
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
+# Paired comparisons, sequence by sequence, printed when a run has both rows.
+PAIRS = (("model", "analytic"), ("model, mirrored source", "analytic, mirrored source"))
 
 
 def load_sequence(path, frames=None):
@@ -124,23 +128,28 @@ def run_sequence(weights, sequence, wanted=ROWS):
     frames = [learned.step_skeleton(joints) for joints in raw_joints]
     seconds = time.perf_counter() - start
     model = stacked(frames)
-    skr_joints = np.stack([f.source_joints for f in frames])       # smoothed and denoised
-
-    # Analytic: the same source skeletons and target rig, rotations from bone alignment, and
-    # the root scaled like SMRM's (by the mean source leg length so far).
     target = learned.target
-    legs = np.cumsum(leg_length(skr_joints)) / np.arange(1, len(skr_joints) + 1)
-    root = (leg_length(target.tpose_joints) / legs)[:, None] * skr_joints[:, 0]
-    analytic = pose_with_rig(analytic_rotations(skr_joints, target.tpose_joints), root,
+
+    def analytic(frames):
+        """The analytic baseline on the source skeletons SMRM saw in ``frames`` (smoothed and
+        denoised) and the model's target rig: rotations from bone alignment, the root scaled
+        like SMRM's (by the mean source leg length so far)."""
+        joints = np.stack([f.source_joints for f in frames])
+        legs = np.cumsum(leg_length(joints)) / np.arange(1, len(joints) + 1)
+        root = (leg_length(target.tpose_joints) / legs)[:, None] * joints[:, 0]
+        return pose_with_rig(analytic_rotations(joints, target.tpose_joints), root,
                              target.tpose_joints, target.points, target.skin_weights)
+
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
+    mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
     make = {"model": lambda: model,
             "model, no refiner": lambda: stream(unrefined, skr_alone()),
             "model, no denoiser": lambda: stream(no_denoiser, raw_joints),
             "model, no foot lock": lambda: stream(no_lock, raw_joints),
-            "model, mirrored source": lambda: stacked(mirrored.run(sequence["source_points"])),
+            "model, mirrored source": lambda: stacked(mirrored_frames()),
             "model, paper pipeline": lambda: stream(paper, skr_alone()),
-            "analytic": lambda: analytic,
+            "analytic": lambda: analytic(frames),
+            "analytic, mirrored source": lambda: analytic(mirrored_frames()),
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
             "oracle target": lambda: stream(oracle_rig, raw_joints),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"])}
@@ -336,14 +345,15 @@ def summarize(results, split):
     feet = {"all": pooled_feet(results), **{c: pooled_feet(results, lambda r, c=c: r["category"]
                                                            == c) for c in categories}}
     sections.append(feet_table(feet))
-    against = None
-    if "analytic" in results[0]["metrics"]:
-        against = paired_difference(results, "model", "analytic")
-        sections.append(comparison_table(against, "Model minus analytic, per sequence "
-                                                  "(frame-weighted; below zero: model better)"))
+    paired = {f"{row} minus {baseline}": paired_difference(results, row, baseline)
+              for row, baseline in PAIRS
+              if row in results[0]["metrics"] and baseline in results[0]["metrics"]}
+    sections += [comparison_table(comparison, f"{name.capitalize()}, per sequence "
+                                              f"(frame-weighted; below zero: the first better)")
+                 for name, comparison in paired.items()]
     return {"rows": overall, "frames": total_frames, "sequences": len(results),
             "by_target_body": by_body, "by_category": by_category,
-            "feet_on_truth_contacts": feet, "model_minus_analytic": against, "split": split,
+            "feet_on_truth_contacts": feet, "paired_differences": paired, "split": split,
             "text": "\n\n".join(sections)}
 
 

@@ -57,5 +57,6 @@ def test_from_json_prints_a_saved_run_and_adds_its_tables(tmp_path, capsys):
     written = json.loads(path.read_text())
     assert written["weights"] == "w" and written["per_sequence"] == saved["per_sequence"]
     assert written["rows"]["model"]["MPJPE"] == pytest.approx(2.0 + (-0.1 * 3 + 0.3) / 4)
-    assert written["model_minus_analytic"]["PA-MPJPE"]["difference"] == pytest.approx(0.0)
+    comparison = written["paired_differences"]["model minus analytic"]
+    assert comparison["PA-MPJPE"]["difference"] == pytest.approx(0.0)
     assert written["feet_on_truth_contacts"]["all"]["model"] == pytest.approx(0.5)
