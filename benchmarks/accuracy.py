@@ -36,8 +36,8 @@ If DIR/test is absent, the benchmark data is built first (python -m training.dat
 A third compares the model with the analytic baseline, sequence by sequence (and the mirrored
 source rows likewise, ``PAIRS``): for each metric the frame-weighted difference (model minus
 analytic; below zero, the model is better), its 95 % interval from a bootstrap over the
-sequences (``paired_difference``), and on how many sequences the model is better. --from-json OUT.json prints every table again from a saved
-run, computing nothing.
+sequences (``paired_difference``), and on how many sequences the model is better.
+--from-json OUT.json prints every table again from a saved run, computing nothing.
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
