@@ -105,31 +105,45 @@ def test_array_sources_match_the_folder(inputs, folder_run, name):
                                load(folder_run / "result.npz")["vertices"], atol=1e-5)
 
 
-@pytest.mark.parametrize("option, setting", [("--no-smoothing", {"smoothing": None}),
-                                             ("--no-foot-lock", {"foot_lock": None}),
-                                             ("--mirror-source", {"mirror_source": True}),
-                                             ("--no-refine", {"refine": False}),
-                                             ("--no-denoise", {"denoise": False})])
+EAGER = FootLock(plant_speed=50.0, lift_speed=50.0, height_margin=10.0, max_offset=10.0)
+
+
+@pytest.mark.parametrize("option, setting", [
+    (("--no-smoothing",), {"smoothing": None}),
+    (("--no-foot-lock",), {"foot_lock": None}),
+    (("--foot-leash", "0.002"), {"foot_lock": EAGER._replace(max_offset=0.002)}),
+    (("--mirror-source",), {"mirror_source": True}),
+    (("--no-refine",), {"refine": False}),
+    (("--no-denoise",), {"denoise": False})])
 def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, setting):
     """Each option changes the result as the API's setting does. The feet are held by an
     eager lock here: the tiny model's random toes would never plant with the defaults."""
-    eager = FootLock(plant_speed=50.0, lift_speed=50.0, height_margin=10.0,
-                     max_offset=10.0)
-    monkeypatch.setattr(cli, "FootLock", lambda: eager)
+    monkeypatch.setattr(cli, "FootLock", lambda: EAGER)
     results = {}
-    for options in ((), (option,)):
+    for options in ((), option):
         out = inputs["dir"] / f"out{''.join(options)}"
         assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
                    "--out", out, "--format", "npz", "--weights", WEIGHTS, "--overwrite",
                    *options) == 0
         results[options] = load(out / "result.npz")
-    retargeter = Retargeter.from_weights(WEIGHTS, **{"foot_lock": eager, **setting})
+    retargeter = Retargeter.from_weights(WEIGHTS, **{"foot_lock": EAGER, **setting})
     retargeter.set_target(inputs["target"], inputs["faces"])
     expected = list(retargeter.run(inputs["frames"]))
     for field in ("rotations", "vertices"):
-        got = results[(option,)][field]
+        got = results[option][field]
         np.testing.assert_allclose(got, [getattr(f, field) for f in expected], atol=1e-5)
-    assert np.abs(results[(option,)]["rotations"] - results[()]["rotations"]).max() > 1e-4
+    assert np.abs(results[option]["rotations"] - results[()]["rotations"]).max() > 1e-4
+
+
+@pytest.mark.parametrize("options, message", [
+    (("--foot-leash", "0"), "--foot-leash: must be positive, got 0"),
+    (("--foot-leash", "0.1", "--no-foot-lock"), "not allowed with argument --foot-leash")])
+def test_foot_leash_refuses_bad_settings(inputs, tmp_path, capsys, options, message):
+    with pytest.raises(SystemExit) as exit_:
+        run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+            tmp_path / "o", "--weights", WEIGHTS, *options)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_points_option_takes_a_seeded_subset(inputs):

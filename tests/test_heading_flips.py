@@ -1,0 +1,51 @@
+"""The bookkeeping of benchmarks/heading_flips.py on hand-made skeletons."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import heading_flips  # noqa: E402
+
+
+def facing_plus_z(frames):
+    """(frames, J, 3) skeletons facing +Z (their left on +X), each with random other joints."""
+    joints = np.random.default_rng(0).normal(0.0, 0.05, (frames, NUM_JOINTS, 3))
+    for name, x in (("left_hip", 0.1), ("right_hip", -0.1), ("left_shoulder", 0.2),
+                    ("right_shoulder", -0.2)):
+        joints[:, JOINT_INDEX[name]] = (x, 1.0, 0.0)
+    return joints
+
+
+def turned(joints, angles):
+    """Skeletons (T, J, 3) turned about +Y by (T,) angles, radians (+Z toward +X)."""
+    cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    x, y, z = np.moveaxis(joints, -1, 0)
+    return np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1)
+
+
+def test_headings_are_the_turn_from_plus_z():
+    angles = np.array([0.0, 0.5, np.pi / 2, -2.0, 3.0])
+    found = heading_flips.headings(turned(facing_plus_z(len(angles)), angles))
+    np.testing.assert_allclose(heading_flips.wrapped(found - angles), 0.0, atol=1e-5)
+
+
+class Finder:
+    """A stand-in for Retargeter.skeleton: the truth, turned half round on chosen frames."""
+    def __init__(self, truth, flipped):
+        self.answer = turned(truth, np.where(np.isin(np.arange(len(truth)), flipped), np.pi, 0))
+
+    def skeleton(self, points):
+        return self.answer
+
+
+def test_sequence_flips_counts_the_frames_facing_the_wrong_way():
+    truth = turned(facing_plus_z(6), np.radians([170.0, 180.0, -170.0, -150.0, -150.0, -140.0]))
+    sequence = {"name": "s", "category": "dance", "source_points": None, "source_joints": truth}
+    out = heading_flips.sequence_flips({"a": Finder(truth, [1, 4]), "b": Finder(truth, [])},
+                                       sequence)
+    assert out["flipped"] == {"a": 2, "b": 0} and out["frames"] == 6
+    assert out["truth_largest_turn_degrees"] == pytest.approx(20.0)     # across +-180 degrees
