@@ -57,8 +57,8 @@ from pathlib import Path
 import numpy as np
 
 from minretarget.analytic import analytic_rotations
-from minretarget.contacts import FootLock
 from minretarget.atomic import atomic_write
+from minretarget.contacts import FootLock
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
 from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts, foot_speeds
 from minretarget.retargeter import Retargeter
@@ -71,10 +71,7 @@ ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock
         "model, mirrored source",
         "model, paper pipeline", "analytic", "analytic, mirrored source", "oracle source",
         "oracle target", "oracle both")
-# Optional rows (computed only when named in --rows): the default model with the foot lock's
-# leash (FootLock.max_offset) longer than its 1 cm, for the trade of foot sliding against
-# accuracy (the command line's --foot-leash).
-FOOT_LEASHES = (0.02, 0.05, 0.1)
+FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
 LEASH_ROWS = tuple(f"model, foot leash {leash:g} m" for leash in FOOT_LEASHES)
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
@@ -131,7 +128,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
     oracle_rig = Retargeter(weights)
     oracle_rig_raw = Retargeter(weights, smoothing=None, denoise=False)
     leashed = {row: Retargeter(weights, foot_lock=FootLock(max_offset=leash))
-               for row, leash in zip(LEASH_ROWS, FOOT_LEASHES)}
+               for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (raw, rig), (mirrored, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):

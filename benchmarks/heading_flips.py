@@ -7,10 +7,11 @@ its skeleton then turns half round about the vertical between two frames, the le
 come out crossed, and the feet jump by tens of centimetres, which no smoothing or foot lock
 can hide. Per test sequence this counts the frames whose source skeleton faces more than 90
 degrees away from the ground truth's (heading as ``minretarget.heading``: the hips' and
-shoulders' left-right axis about +Y), as the runtime finds it (SKR, then the joint refiner)
-and as SKR alone finds it, and gives the largest turn the ground truth makes between two
-frames (a body turning faster than 90 degrees a frame would spin at over 7 turns a second at
-30 fps).
+shoulders' left-right axis about +Y), as the runtime finds it before smoothing and denoising
+(SKR, then the joint refiner; ``Retargeter.skeleton``) and as SKR alone finds it, with the
+toes' mean distance from the truth's (both relative to the pelvis) in those frames and in the
+others, and gives the largest turn the ground truth makes between two frames (a body turning
+faster than 90 degrees a frame would spin at over 7 turns a second at 30 fps).
 """
 import argparse
 import json
@@ -21,7 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from minretarget.atomic import atomic_write
+from minretarget.conventions import JOINT_INDEX
 from minretarget.heading import heading_features
+from minretarget.metrics import FOOT_JOINTS
 from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
 
@@ -29,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import load_sequence  # noqa: E402
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
+TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
 
 
 def headings(joints):
@@ -42,15 +46,29 @@ def wrapped(angles):
     return (angles + np.pi) % (2 * np.pi) - np.pi
 
 
+def toe_errors(joints, truth):
+    """(T, 2) distances of the toes from the truth's, both relative to the pelvis, metres."""
+    def toes(skeleton):
+        return skeleton[:, TOES] - skeleton[:, :1]
+    return np.linalg.norm(toes(joints) - toes(truth), axis=-1)
+
+
 def sequence_flips(retargeters, sequence):
-    """The frames of ``sequence`` each of ``retargeters`` ({name: Retargeter}) finds facing
-    the wrong way, and the truth's largest turn between two frames."""
-    truth = headings(sequence["source_joints"])
-    flipped = {name: int((np.abs(wrapped(headings(retargeter.skeleton(sequence["source_points"]))
-                                          - truth)) > FLIP).sum())
-               for name, retargeter in retargeters.items()}
+    """Per retargeter of ``retargeters`` ({name: Retargeter}): the frames of ``sequence``
+    whose skeleton faces the wrong way, and the sums of the toe errors (``toe_errors``) over
+    them and over the other frames; and the truth's largest turn between two frames."""
+    truth_joints = sequence["source_joints"]
+    truth = headings(truth_joints)
+    found = {}
+    for name, retargeter in retargeters.items():
+        joints = retargeter.skeleton(sequence["source_points"])
+        flipped = np.abs(wrapped(headings(joints) - truth)) > FLIP
+        errors = toe_errors(joints, truth_joints)
+        found[name] = {"flipped": int(flipped.sum()),
+                       "toe_error_sum_flipped": float(errors[flipped].sum()),
+                       "toe_error_sum_other": float(errors[~flipped].sum())}
     return {"sequence": str(sequence["name"]), "category": str(sequence["category"]),
-            "frames": len(truth), "flipped": flipped,
+            "frames": len(truth), "found": found,
             "truth_largest_turn_degrees": float(np.degrees(np.abs(wrapped(np.diff(truth)))
                                                            .max(initial=0.0)))}
 
@@ -72,22 +90,33 @@ def main(argv=None):
     for path in paths:
         r = sequence_flips(retargeters, load_sequence(path))
         results.append(r)
-        if any(r["flipped"].values()):
+        if any(found["flipped"] for found in r["found"].values()):
             print(f"{r['sequence']} ({r['category']}, {r['frames']} frames): flipped "
-                  + ", ".join(f"{n} {r['flipped'][n]}" for n in retargeters)
-                  + f"; the truth turns at most {r['truth_largest_turn_degrees']:.0f} degrees "
+                  + ", ".join(f"{n} {r['found'][n]['flipped']}" for n in retargeters)
+                  + f"; the truth turns at most {r['truth_largest_turn_degrees']:.1f} degrees "
                   "a frame", flush=True)
     frames = sum(r["frames"] for r in results)
-    flipped = {n: sum(r["flipped"][n] for r in results) for n in retargeters}
-    for name, count in flipped.items():
-        print(f"{name}: {count} of {frames} frames ({100 * count / frames:.2f} %) flipped, in "
-              f"{sum(r['flipped'][name] > 0 for r in results)} of {len(results)} sequences")
-    print(f"the truth turns at most "
-          f"{max(r['truth_largest_turn_degrees'] for r in results):.0f} degrees a frame "
-          f"({time.perf_counter() - started:.0f} s)")
+    summary = {}
+    for name in retargeters:
+        flipped = sum(r["found"][name]["flipped"] for r in results)
+        toes = {part: sum(r["found"][name][f"toe_error_sum_{part}"] for r in results)
+                / max(1, 2 * count) for part, count in (("flipped", flipped),
+                                                        ("other", frames - flipped))}
+        summary[name] = {"flipped": flipped, "toe_error_flipped": toes["flipped"],
+                         "toe_error_other": toes["other"],
+                         "sequences": sum(r["found"][name]["flipped"] > 0 for r in results)}
+        print(f"{name}: {flipped} of {frames} frames ({100 * flipped / frames:.2f} %) flipped, "
+              f"in {summary[name]['sequences']} of {len(results)} sequences; toes "
+              f"{toes['flipped']:.3f} m from the truth's there, {toes['other']:.3f} m in the "
+              "other frames")
+    largest = max(r["truth_largest_turn_degrees"] for r in results)
+    seconds = time.perf_counter() - started
+    print(f"the truth turns at most {largest:.1f} degrees a frame ({seconds:.0f} s)")
     if args.json:
         with atomic_write(args.json) as file:
-            file.write(json.dumps({"flipped": flipped, "frames": frames, "per_sequence": results,
+            file.write(json.dumps({"frames": frames, "summary": summary,
+                                   "truth_largest_turn_degrees": largest,
+                                   "per_sequence": results, "seconds": round(seconds, 1),
                                    "weights": args.weights or "shipped default"},
                                   indent=2).encode())
 

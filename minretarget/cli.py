@@ -179,7 +179,7 @@ def _retarget(args):
     space = make_space(args.units, args.up_axis)
     formats = parse_formats(args.format)
     foot_lock = None if args.no_foot_lock else FootLock()
-    if foot_lock is not None and args.foot_leash is not None:
+    if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
         foot_lock = foot_lock._replace(max_offset=args.foot_leash)
     retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
                                  foot_lock, args.mirror_source, not args.no_refine,
@@ -230,8 +230,8 @@ def _positive_int(text):
 
 def _positive_float(text):
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
     return value
 
 

@@ -108,13 +108,17 @@ def test_array_sources_match_the_folder(inputs, folder_run, name):
 EAGER = FootLock(plant_speed=50.0, lift_speed=50.0, height_margin=10.0, max_offset=10.0)
 
 
-@pytest.mark.parametrize("option, setting", [
+PIPELINE_OPTIONS = [
     (("--no-smoothing",), {"smoothing": None}),
     (("--no-foot-lock",), {"foot_lock": None}),
     (("--foot-leash", "0.002"), {"foot_lock": EAGER._replace(max_offset=0.002)}),
     (("--mirror-source",), {"mirror_source": True}),
     (("--no-refine",), {"refine": False}),
-    (("--no-denoise",), {"denoise": False})])
+    (("--no-denoise",), {"denoise": False})]
+
+
+@pytest.mark.parametrize("option, setting", PIPELINE_OPTIONS,
+                         ids=[" ".join(option) for option, _ in PIPELINE_OPTIONS])
 def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, setting):
     """Each option changes the result as the API's setting does. The feet are held by an
     eager lock here: the tiny model's random toes would never plant with the defaults."""
@@ -136,7 +140,8 @@ def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, sett
 
 
 @pytest.mark.parametrize("options, message", [
-    (("--foot-leash", "0"), "--foot-leash: must be positive, got 0"),
+    (("--foot-leash", "0"), "--foot-leash: must be positive and finite, got 0"),
+    (("--foot-leash", "inf"), "--foot-leash: must be positive and finite, got inf"),
     (("--foot-leash", "0.1", "--no-foot-lock"), "not allowed with argument --foot-leash")])
 def test_foot_leash_refuses_bad_settings(inputs, tmp_path, capsys, options, message):
     with pytest.raises(SystemExit) as exit_:

@@ -47,5 +47,13 @@ def test_sequence_flips_counts_the_frames_facing_the_wrong_way():
     sequence = {"name": "s", "category": "dance", "source_points": None, "source_joints": truth}
     out = heading_flips.sequence_flips({"a": Finder(truth, [1, 4]), "b": Finder(truth, [])},
                                        sequence)
-    assert out["flipped"] == {"a": 2, "b": 0} and out["frames"] == 6
-    assert out["truth_largest_turn_degrees"] == pytest.approx(20.0)     # across +-180 degrees
+    assert out["frames"] == 6
+    assert {name: found["flipped"] for name, found in out["found"].items()} == {"a": 2, "b": 0}
+    assert out["found"]["b"]["toe_error_sum_flipped"] == 0.0
+    assert out["found"]["b"]["toe_error_sum_other"] == pytest.approx(0.0, abs=1e-9)
+    # A half turn about +Y takes a toe (x, z) off the pelvis to (-x, -z): twice its distance.
+    toes = truth[:, heading_flips.TOES] - truth[:, :1]
+    expected = 2 * np.linalg.norm(toes[[1, 4]][..., [0, 2]], axis=-1).sum()
+    assert out["found"]["a"]["toe_error_sum_flipped"] == pytest.approx(expected)
+    # -170 -> -150 degrees; the turns across +-180 (170 -> 180 -> -170) count 10, not 350.
+    assert out["truth_largest_turn_degrees"] == pytest.approx(20.0)

@@ -95,6 +95,30 @@ def test_interrupted_run_resumes_to_the_same_bytes(inputs, reference, stop):
     assert files(out) == reference                        # same names, same bytes
 
 
+def test_resume_refuses_another_foot_leash(inputs, tmp_path, monkeypatch, capsys):
+    """The leash is part of the run: a resume with another one is refused, naming it; with
+    the default's own value (0.01) it is the same run and goes on."""
+    out, original, calls = tmp_path / "leash", Retargeter.step, []
+
+    def step_then_stop(self, points):                     # Ctrl-C after 20 frames
+        calls.append(None)
+        if len(calls) > 20:
+            raise KeyboardInterrupt
+        return original(self, points)
+
+    monkeypatch.setattr(Retargeter, "step", step_then_stop)
+    assert cli.main(arguments(inputs, out, "--format", "npz")) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
+                              "--foot-leash", 0.05)) == 1
+    err = capsys.readouterr().err
+    assert "started with other inputs or options" in err and "foot_lock" in err
+    assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
+                              "--foot-leash", 0.01)) == 0
+    assert (out / "result.npz").exists()
+
+
 def test_two_processes_give_the_same_bytes(inputs, tmp_path):
     runs = [start_process(arguments(inputs, tmp_path / name, "--seed", 5))
             for name in ("a", "b")]
