@@ -34,11 +34,13 @@ def as_float32_array(value, name, shape, finite=True):
         pattern = ", ".join("..." if s is Ellipsis else "any" if s is None else str(s)
                             for s in shape)
         raise ValueError(f"{name} must have shape ({pattern}), got {array.shape}")
-    array = np.ascontiguousarray(array, dtype=np.float32)
+    given = array
+    with np.errstate(over="ignore"):    # a value past float32's range is refused below, named
+        array = np.ascontiguousarray(given, dtype=np.float32)
     if finite and array.size and not np.isfinite(array).all():
-        bad = np.argwhere(~np.isfinite(array))[0]
-        raise ValueError(f"{name} has a non-finite value {array[tuple(bad)]} at index "
-                         f"{tuple(int(i) for i in bad)}")
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+        what = "non-finite value" if not np.isfinite(given[bad]) else "value past float32's range"
+        raise ValueError(f"{name} has a {what} {given[bad]} at index {bad}")
     return array
 
 

@@ -4,8 +4,8 @@ the shipped weights' checksum."""
 import gzip
 import io
 import shutil
-import zipfile
 import warnings
+import zipfile
 
 import numpy as np
 import pytest
@@ -127,6 +127,8 @@ def test_public_functions_refuse_bad_arrays(tiny_weights):
         (retargeter.step, (np.ones((100, 3), complex),), "real numeric array, got dtype complex"),
         (retargeter.step, (np.ones((100, 3), bool),), "dtype bool"),
         (retargeter.step, (np.full((100, 3), np.nan),), r"non-finite value nan at index \(0, 0"),
+        (retargeter.step, (np.where(np.arange(300).reshape(100, 3) == 7, 1e300, 1.0),),
+         r"value past float32's range 1e\+300 at index \(2, 1\)"),
         (retargeter.step_skeleton, (np.zeros((21, 3)),), r"must have shape \(22, 3\)"),
         (retargeter.set_target, (np.zeros((63, 3)),), "has 63 points; at least 64"),
         (retargeter.pose, (np.zeros((22, 3)), np.zeros(3)), r"rotations must have shape \(22, 4"),
@@ -135,8 +137,10 @@ def test_public_functions_refuse_bad_arrays(tiny_weights):
         (quaternion_to_matrix, ([[1, 0, 0, 0], [1e20, 0, 0, 0]],), r"norm 1e\+20 at index \(1,"),
     ]
     for function, args, message in cases:
-        with pytest.raises(ValueError, match=message):
-            function(*args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")          # the error says it all: no warning first
+            with pytest.raises(ValueError, match=message):
+                function(*args)
     with pytest.raises(ValueError, match=r"frame 2: source points has a non-finite value inf"):
         list(retargeter.run([body(), body(), np.full((100, 3), np.inf)]))
 
