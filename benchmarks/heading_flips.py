@@ -82,7 +82,8 @@ def main(argv=None):
     paths = sorted((Path(args.data) / "test").glob("*.npz"))
     if not paths:
         parser.error(f"no test sequences in {Path(args.data) / 'test'}: build them with "
-                     "python -m training.data build --only test")
+                     f"python -m training.data build --cmu ../shared/data/cmu --out {args.data} "
+                     "--only test")
     weights = load_weights(args.weights)
     retargeters = {"SKR and refiner": Retargeter(weights, warn=False),
                    "SKR alone": Retargeter(weights, warn=False, refine=False)}
