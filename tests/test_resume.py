@@ -15,6 +15,7 @@ import pytest
 from conftest import GOLDEN
 from minretarget import Retargeter, cli
 from minretarget.checkpoint import CHECKPOINT, TRACK, Track, load_checkpoint, save_checkpoint
+from minretarget.contacts import FootLock
 from minretarget.formats.mesh import read_points, write_mesh
 
 trimesh = pytest.importorskip("trimesh")
@@ -97,7 +98,7 @@ def test_interrupted_run_resumes_to_the_same_bytes(inputs, reference, stop):
 
 def test_resume_refuses_another_foot_leash(inputs, tmp_path, monkeypatch, capsys):
     """The leash is part of the run: a resume with another one is refused, naming it; with
-    the default's own value (0.01) it is the same run and goes on."""
+    the default's own value it is the same run and goes on."""
     out, original, calls = tmp_path / "leash", Retargeter.step, []
 
     def step_then_stop(self, points):                     # Ctrl-C after 20 frames
@@ -115,7 +116,7 @@ def test_resume_refuses_another_foot_leash(inputs, tmp_path, monkeypatch, capsys
     err = capsys.readouterr().err
     assert "started with other inputs or options" in err and "foot_lock" in err
     assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
-                              "--foot-leash", 0.01)) == 0
+                              "--foot-leash", FootLock().max_offset)) == 0
     assert (out / "result.npz").exists()
 
 
