@@ -14,7 +14,7 @@ from training.losses import rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
 from training.analytic import analytic_rotations  # noqa: E402
 from training.train import (initial_models, main, retarget_ground_truth,  # noqa: E402
-                            runtime_skeletons, smoothed_skeletons, source_noise)
+                            smoothed_skeletons, source_noise)
 
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
@@ -219,61 +219,6 @@ def test_denoiser_learns_from_the_skeletons_the_runtime_smooths(run):
     for a, b in zip(data["starts"][:-1], data["starts"][1:]):
         want = np.stack([f.source_joints for f in retargeter.run(data["points"][a:b])])
         np.testing.assert_allclose(got[a:b].numpy(), want, atol=1e-5)
-
-
-def test_smrm_runtime_source_is_what_a_retargeter_hands_smrm(run):
-    """smrm.runtime_source's inputs: SKR, refiner, smoothing and the mirror-averaged
-    denoiser from each trial's first frame, as a Retargeter's ``source_joints``."""
-    weights = load_weights(run / "run" / "weights.npz")
-    models = initial_models(load_recipe(run / "tiny.json"), weights)
-    data = {k: torch.from_numpy(v) for k, v in np.load(run / "sequences_val.npz").items()}
-    got = runtime_skeletons(data, models["skr"], models["refine"], models["denoise"],
-                            weights.config.refine_neighbours).numpy()
-    retargeter = Retargeter(weights, warn=False, foot_lock=None)
-    retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))
-    starts = data["starts"].tolist()
-    for a, b in zip(starts[:-1], starts[1:]):
-        want = np.stack([f.source_joints for f in retargeter.run(data["points"][a:b].numpy())])
-        np.testing.assert_allclose(got[a:b], want, atol=2e-5)
-    # The denoiser moved them: they are not the smoothed skeletons.
-    smoothed = smoothed_skeletons(weights.skr, weights.refine, weights.config.refine_neighbours,
-                                  data["points"], data["starts"]).numpy()
-    assert np.abs(got - smoothed).max() > 1e-4
-
-
-def test_smrm_trains_on_runtime_skeletons(run, tmp_path):
-    """--set smrm.runtime_source=0.5: half of each batch is runtime skeletons of the trials;
-    the log compares SMRM with the analytic retargeting there; another SMRM comes out than
-    with noise alone; a clip longer than every trial, or no trained SKR, is refused."""
-    common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--threads", "1",
-              "--set", "smrm.clip_frames=5"]
-    main(["smrm", "--init", str(run / "run" / "weights.npz"), "--out", str(tmp_path / "noise"),
-          *common])
-    main(["smrm", "--init", str(run / "run" / "weights.npz"), "--out", str(tmp_path / "runtime"),
-          "--set", "smrm.runtime_source=0.5", *common])
-    rows = (tmp_path / "runtime" / "smrm.csv").read_text().splitlines()
-    assert {"val_runtime_source_root_relative",
-            "val_runtime_source_analytic"} <= set(rows[0].split(","))
-    # An SMRM that is exactly the analytic retargeting (the prior, its correction reset to
-    # the identity, never trained) scores what the log says the analytic one scores.
-    main(["smrm", "--init", str(run / "run" / "weights.npz"), "--out", str(tmp_path / "frozen"),
-          "--set", "smrm.runtime_source=0.5", "--set", "model.smrm_analytic_prior=true",
-          "--set", "smrm.learning_rate=0", *common])
-    rows = (tmp_path / "frozen" / "smrm.csv").read_text().splitlines()
-    last = dict(zip(rows[0].split(","), map(float, rows[-1].split(","))))
-    assert 0 < last["val_runtime_source_analytic"] < 10
-    assert abs(last["val_runtime_source_root_relative"]
-               - last["val_runtime_source_analytic"]) < 1e-6
-    assert not np.array_equal(np.load(tmp_path / "runtime" / "weights.npz")["smrm.root_head.bias"],
-                              np.load(tmp_path / "noise" / "weights.npz")["smrm.root_head.bias"])
-    with pytest.raises(ValueError, match="clip_frames 20: longer than every trial"):
-        main(["smrm", "--init", str(run / "run" / "weights.npz"), "--out",
-              str(tmp_path / "long"), *common, "--set", "smrm.runtime_source=0.5",
-              "--set", "smrm.clip_frames=20"])
-    with pytest.raises(SystemExit):
-        main(["smrm", "--out", str(tmp_path / "untrained"), *common,
-              "--set", "smrm.runtime_source=0.5"])
-    assert not (tmp_path / "untrained" / "smrm.pt").exists()
 
 
 def test_the_denoiser_never_learns_from_an_untrained_refiner(run, tmp_path):

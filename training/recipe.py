@@ -68,10 +68,6 @@ class SMRMStage:
     input_noise_bias: tuple = ()
     input_noise_frame: tuple = ()
     input_noise_autocorrelation: float = 0.0
-    # Of each batch: clips whose input is the source skeleton as the runtime hands it to SMRM
-    # (the trained SKR, refiner, smoothing and denoiser on ``sequences_*.npz``), its true
-    # joints the clean clip, in place of noise on true joints. 0: noise alone.
-    runtime_source: float = 0.0
     # Loss weights: joint cycle A -> B -> A, reconstruction A -> A, adversarial, rotation
     # cycle and smoothness (the last two as in the paper).
     cycle: float = 1.0

@@ -37,7 +37,6 @@ from minretarget.smoothing import Smoothing, smooth_joints
 from minretarget.weights import load_weights
 from training.export import (export_weights, import_weights, refine_runtime_weights,
                              skr_runtime_weights)
-from training.analytic import analytic_rotations
 from training.kinematics import forward_kinematics
 from training.losses import (denoise_losses, discriminator_loss, skin_loss, skr_loss,
                              smrm_losses)
@@ -370,25 +369,6 @@ def smoothed_skeletons(skr_weights, refine_weights, neighbours, points, starts):
     return torch.from_numpy(joints).to(points.device)
 
 
-def runtime_skeletons(data, skr, refine, denoise, neighbours):
-    """The source skeletons the runtime hands SMRM for ``data`` (a ``sequences_*`` split:
-    points (N, P, 3), starts (S + 1,)): SKR, the refiner, smoothing (``smoothed_skeletons``),
-    then the denoiser (or None) on each trial whole, mirror-averaged as the runtime runs it
-    from a stream's start. torch models -> (N, J, 3) tensor, metres."""
-    skeleton = smoothed_skeletons(skr_runtime_weights(skr.cpu().eval()),
-                                  None if refine is None
-                                  else refine_runtime_weights(refine.cpu().eval()),
-                                  neighbours, data["points"], data["starts"])
-    if denoise is None:
-        return skeleton
-    denoise = denoise.to(skeleton.device).eval()
-    bounds = data["starts"].cpu().tolist()
-    with torch.no_grad():
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            skeleton[a:b] = denoise.mirror_averaged(skeleton[a:b][None])[0][0]
-    return skeleton
-
-
 def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None,
                   skr=None, refine=None):
     """The skeleton denoiser on the smoothed skeletons of the trained SKR (and refiner) of
@@ -516,48 +496,9 @@ def retarget_ground_truth(rotations, root, source_tpose, target_tpose):
     return joints
 
 
-def runtime_clips(sequences, clip_frames, count, generator):
-    """``count`` random ``clip_frames`` windows inside the trials of ``sequences`` (a
-    ``sequences_*`` split with ``skeleton``, the runtime's source skeletons): their (B, C, J, 3)
-    runtime skeletons, (B, C, J, 3) true joints and (B,) trial indices."""
-    starts = sequences["starts"].cpu()
-    lengths = starts[1:] - starts[:-1]
-    usable = torch.nonzero(lengths >= clip_frames)[:, 0]
-    if not len(usable):
-        raise ValueError(f"smrm.clip_frames {clip_frames}: longer than every trial of the "
-                         f"sequences data (at most {int(lengths.max())} frames), which "
-                         "smrm.runtime_source draws from")
-    trial = usable[torch.randint(len(usable), (count,), generator=generator)]
-    offset = (torch.rand(count, generator=generator)
-              * (lengths[trial] - clip_frames + 1)).long()
-    frames = (starts[trial] + offset)[:, None] + torch.arange(clip_frames)
-    return sequences["skeleton"][frames], sequences["joints"][frames], trial
-
-
-def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None,
-               skr=None, refine=None, denoise=None):
-    """SMRM on clips A (``smrm_*.npz``), the input their true joints plus noise; with
-    ``smrm.runtime_source`` > 0 that share of each batch is windows of whole trials
-    (``sequences_*.npz``) whose input is the source skeleton the runtime would give SMRM
-    there (the trained ``skr``, ``refine`` and ``denoise``, torch models), so SMRM learns to
-    take out the error they leave rather than noise of a guessed shape."""
+def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
     stage_recipe = recipe.smrm
     train, val = (load_split(data_dir, f"smrm_{s}", device) for s in ("train", "val"))
-    runtime_count = round(stage_recipe.runtime_source * stage_recipe.batch_size)
-    if runtime_count:
-        if skr is None:
-            raise ValueError("smrm.runtime_source needs a trained SKR (train skr with smrm, "
-                             "or --init WEIGHTS)")
-        sequences = {}
-        for split in ("train", "val"):
-            sequences[split] = load_split(data_dir, f"sequences_{split}", device)
-            sequences[split]["skeleton"] = runtime_skeletons(
-                sequences[split], skr, refine, denoise, recipe.model.refine_neighbours)
-            del sequences[split]["points"]
-        # The trials' own bodies: ``body`` indexes the split's bodies, as in smrm_*.npz.
-        for split, data in (("train", train), ("val", val)):
-            sequences[split]["tpose"] = data["bodies_tpose_joints"][
-                sequences[split]["body"].long()]
     model = (model or MotionRetargeter(recipe.model)).to(device)
     with torch.random.fork_rng(devices=[]):     # the same critic whichever stages ran before
         torch.manual_seed(recipe.seed + 2)
@@ -588,18 +529,13 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
 
     def train_step(stage):
         count, size = len(train["joints"]), stage_recipe.batch_size
-        index = stage.batch(count, size - runtime_count)
+        index = stage.batch(count, size)
         joints = clips(index, stage.generator)
-        noisy = joints + source_noise(joints.shape, stage_recipe, stage.generator).to(device)
-        source_tpose = train["tpose_joints"][index]
-        if runtime_count:
-            seen, truth, trial = runtime_clips(sequences["train"], joints.shape[1],
-                                               runtime_count, stage.generator)
-            joints, noisy = torch.cat([joints, truth]), torch.cat([noisy, seen])
-            source_tpose = torch.cat([source_tpose, sequences["train"]["tpose"][trial]])
+        noise = source_noise(joints.shape, stage_recipe, stage.generator).to(device)
         target = bodies[torch.randint(len(bodies), (size,), generator=stage.generator)]
         loss, terms, joints_ab = smrm_losses(
-            model, discriminator, joints, noisy, source_tpose, target, stage_recipe)
+            model, discriminator, joints, joints + noise,
+            train["tpose_joints"][index], target, stage_recipe)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -618,19 +554,6 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
     val_noise = source_noise(val["joints"][:val_count].shape, stage_recipe,
                              torch.Generator().manual_seed(recipe.seed)).to(device)
 
-    # And A -> A on fixed windows of the validation trials with the runtime's source
-    # skeletons: the model's root-relative error beside the analytic retargeting's.
-    def local(x):
-        return x - x[:, :, :1]
-    if runtime_count:
-        seen, truth, trial = runtime_clips(sequences["val"], stage_recipe.clip_frames,
-                                           VALIDATION_LIMIT // 4,
-                                           torch.Generator().manual_seed(recipe.seed))
-        runtime_val = (seen, sequences["val"]["tpose"][trial], truth)
-        rotations = analytic_rotations(seen, runtime_val[1][:, None])
-        analytic, _ = forward_kinematics(rotations, seen[:, :, 0], runtime_val[1][:, None])
-        runtime_val_analytic = float((local(analytic) - local(truth)).norm(dim=-1).mean())
-
     def evaluate():
         def errors(index):
             target = val_bodies[(val["body"][index].long() + 1) % len(val_bodies)]
@@ -638,17 +561,12 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
                                           val["tpose_joints"][index], target)
             _, _, joints, _ = model(val["joints"][index], target)
             _, _, noisy, _ = model(val["joints"][index] + val_noise[index], target)
+            local = lambda x: x - x[:, :, :1]  # noqa: E731
             return {"val_mpjpe": float((joints - truth).norm(dim=-1).mean()),
                     "val_mpjpe_root_relative": float(
                         (local(joints) - local(truth)).norm(dim=-1).mean()),
                     "val_mpjpe_noisy_source": float((noisy - truth).norm(dim=-1).mean())}
-        metrics = mean_over_batches(val_count, 128, errors)
-        if runtime_count:
-            _, _, joints, _ = model(*runtime_val[:2])
-            metrics["val_runtime_source_root_relative"] = float(
-                (local(joints) - local(runtime_val[2])).norm(dim=-1).mean())
-            metrics["val_runtime_source_analytic"] = runtime_val_analytic
-        return metrics
+        return mean_over_batches(val_count, 128, errors)
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
@@ -725,10 +643,7 @@ def main(argv=None):
         return optional[name] and (name in stages or (
             init is not None and getattr(init, name) is not None
             and name not in args.scratch))
-    trainers = {"skr": train_skr, "skin": train_skin,
-                "smrm": lambda *a: train_smrm(*a, skr=models["skr"], refine=models[
-                    "refine"] if trained("refine") else None, denoise=models[
-                    "denoise"] if trained("denoise") else None),
+    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
                 "refine": lambda *a: train_refine(*a, skr=models["skr"]),
                 "denoise": lambda *a: train_denoise(*a, skr=models["skr"], refine=models[
                     "refine"] if trained("refine") else None)}
@@ -743,10 +658,6 @@ def main(argv=None):
                 and getattr(init, name) is not None):
             print(f"warning: SKR is retrained but not the {what}, which learned the old "
                   f"SKR's errors; train skr,{name} to retrain both")
-    if ("smrm" in stages and recipe.smrm.runtime_source and "skr" not in stages
-            and init is None):
-        parser.error("smrm.runtime_source learns from a trained SKR's skeletons: train skr "
-                     "with it or start from a trained SKR (--init WEIGHTS)")
     if "refine" in stages and "denoise" not in stages and init is not None \
             and init.denoise is not None:
         print("warning: the refiner is retrained but not the denoiser, which learned the old "
