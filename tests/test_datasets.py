@@ -13,7 +13,7 @@ from minretarget.conventions import NUM_JOINTS  # noqa: E402
 from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # noqa: E402
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
-from training.data.datasets import BuildConfig, augment, build  # noqa: E402
+from training.data.datasets import BuildConfig, _Frames, augment, build  # noqa: E402
 
 ACTOR_HIP_HEIGHT = 0.9
 TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
@@ -219,6 +219,38 @@ def test_only_smrm_with_longer_clips(built, cache, tmp_path):
     with pytest.raises(ValueError, match="another build config"):
         build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**config.__dict__, "seed": 4}),
               cache_dir=cache, show_progress=False, datasets=("sequences",))
+
+
+def test_category_power_weighs_the_skr_frames_by_category():
+    """Shares of the draw by category: as the frames come (power 1), alike (0), or in
+    proportion to the square roots of their frame counts (0.5); frames within one alike."""
+    run = dict(_walk("run", 100).__dict__, category="run")
+    frames = _Frames.of([_walk("a", 200), Motion(**run), _walk("b", 100)])    # 300 walk, 100 run
+    walking = np.r_[np.ones(200, bool), np.zeros(100, bool), np.ones(100, bool)]
+    for power, walk_share in ((1.0, 0.75), (0.0, 0.5), (0.5, np.sqrt(3) / (np.sqrt(3) + 1))):
+        weights = frames.category_weights(power)
+        assert weights.shape == (400,) and abs(weights.sum() - 1) < 1e-12
+        np.testing.assert_allclose(weights[walking], walk_share / 300)
+        np.testing.assert_allclose(weights[~walking], (1 - walk_share) / 100)
+
+
+def test_category_power_is_recorded_and_old_manifests_read_with_its_default(built, cache,
+                                                                            tmp_path):
+    """A folder built before the field existed takes partial builds with the default power
+    and refuses another; the SKR frames of power 1 are the ones drawn before the option."""
+    out, _ = built
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"]["category_power"] == 1.0
+    del manifest["config"]["category_power"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, TINY, cache_dir=cache, show_progress=False,
+          datasets=("skr",))
+    assert _load(tmp_path / "skr_train.npz")["points"].tobytes() == \
+        _load(out / "skr_train.npz")["points"].tobytes()
+    with pytest.raises(ValueError, match="another build config"):
+        build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**TINY.__dict__,
+                                                                  "category_power": 0.5}),
+              cache_dir=cache, show_progress=False, datasets=("skr",))
 
 
 def test_augment_turns_about_y_and_shifts():

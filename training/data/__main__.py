@@ -30,7 +30,7 @@ def _build(args):
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
                          points=args.points, skin_samples=args.skin_samples,
                          skin_points=args.skin_points, clip_stride=args.clip_stride,
-                         clip_frames=args.clip_frames)
+                         clip_frames=args.clip_frames, category_power=args.category_power)
     motions, actor_hip_height = cmu_motions(args.cmu)
     summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
                     datasets=args.only)
@@ -96,6 +96,10 @@ def main(argv=None):
         build_parser.add_argument("--" + name.replace("_", "-"), type=int,
                                   default=getattr(_DEFAULTS, name),
                                   help=f"{help_text} (default {getattr(_DEFAULTS, name)})")
+    build_parser.add_argument("--category-power", type=float, default=_DEFAULTS.category_power,
+                              help="SKR frames: each motion category's share is proportional "
+                                   "to its frame count to this power (1: as the motions come; "
+                                   "0: every category alike; default 1)")
     build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")

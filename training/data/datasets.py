@@ -91,6 +91,10 @@ class BuildConfig:
     clip_stride: int = 10        # frames between the starts of consecutive SMRM clips
     clip_frames: int = 30        # frames of an SMRM clip (the paper: 30)
     max_shift: float = 1.0       # horizontal shift augmentation: uniform in +-max_shift, metres
+    # SKR frames: each motion category's share of them is proportional to its frame count to
+    # this power (1: every frame alike, as the motions come; 0: every category alike). Half
+    # of the training frames are salsa and 1 % seated motion.
+    category_power: float = 1.0
 
     @property
     def val_bodies(self):
@@ -134,13 +138,24 @@ class _Frames:
     rotations: np.ndarray
     root: np.ndarray
     starts: np.ndarray           # (trials + 1,) first frame of each trial, then N
+    categories: tuple            # (trials,) each trial's motion category
 
     @staticmethod
     def of(motions):
         lengths = [len(m.rotations) for m in motions]
         return _Frames(np.concatenate([m.rotations for m in motions]).astype(np.float32),
                        np.concatenate([m.root for m in motions]).astype(np.float32),
-                       np.concatenate([[0], np.cumsum(lengths)]))
+                       np.concatenate([[0], np.cumsum(lengths)]),
+                       tuple(m.category for m in motions))
+
+    def category_weights(self, power):
+        """(N,) probabilities of drawing each frame so that a category's share is
+        proportional to its frame count to ``power``; frames within a category alike."""
+        category = np.repeat(np.array(self.categories), np.diff(self.starts))
+        names, index, counts = np.unique(category, return_inverse=True, return_counts=True)
+        share = counts.astype(np.float64) ** power
+        weights = (share / share.sum() / counts)[index]
+        return weights / weights.sum()
 
     def clip_starts(self, stride, length):
         """First frames of every ``length``-frame window at ``stride`` inside one trial."""
@@ -185,9 +200,14 @@ def _chunks(indices):
 
 # ----------------------------------------------------------------------------- datasets
 
-def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift, progress=None):
-    """Static frames: random body, random frame, augmented; see the module docstring."""
-    frame = _draw_frames(len(frames.root), count, rng)
+def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
+                category_power=1.0, progress=None):
+    """Static frames: random body, random frame (categories weighted by
+    ``BuildConfig.category_power``), augmented; see the module docstring."""
+    if category_power == 1.0:
+        frame = _draw_frames(len(frames.root), count, rng)
+    else:
+        frame = rng.choice(len(frames.root), count, p=frames.category_weights(category_power))
     body = rng.integers(len(bodies), size=count).astype(np.int32)
     heading, shift = _augmentation(rng, (count,), max_shift)
     out = {"points": np.empty((count, points, 3), np.float32),
@@ -396,7 +416,9 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     previous = out_dir / "manifest.json"
     partial = set(datasets) != set(DATASETS) and previous.is_file()
     old = json.loads(previous.read_text()) if partial else {}
-    if partial and old.get("config") != dataclasses.asdict(config):
+    # A manifest from before a config field existed was built with its default.
+    if partial and {**dataclasses.asdict(BuildConfig()), **old.get("config", {})} \
+            != dataclasses.asdict(config):
         raise ValueError(f"{previous} records another build config ({old.get('config')}); "
                          f"build these datasets with it, or into another folder")
     # Each dataset has its own random stream, so changing one size leaves the others alone.
@@ -433,7 +455,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                           progress=progress)
             for kind, make, sizes in (
                     ("skr", skr_samples, dict(count=counts.get(f"skr_{split}"),
-                                              points=config.points)),
+                                              points=config.points,
+                                              category_power=config.category_power)),
                     ("skin", skin_samples, dict(count=counts.get(f"skin_{split}"),
                                                 points=config.skin_points)),
                     ("smrm", smrm_clips, dict(stride=config.clip_stride,
