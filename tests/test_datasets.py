@@ -232,6 +232,20 @@ def test_category_power_weighs_the_skr_frames_by_category():
         assert weights.shape == (400,) and abs(weights.sum() - 1) < 1e-12
         np.testing.assert_allclose(weights[walking], walk_share / 300)
         np.testing.assert_allclose(weights[~walking], (1 - walk_share) / 100)
+    with pytest.raises(ValueError, match="category_power must be finite, got nan"):
+        BuildConfig(category_power=float("nan"))
+
+
+@pytest.mark.parametrize("text, message", [("nan", "must be finite, got nan"),
+                                           ("0.5x", "not a number: '0.5x'")])
+def test_build_command_refuses_a_bad_category_power(tmp_path, capsys, text, message):
+    from training.data.__main__ import main
+    with pytest.raises(SystemExit) as exit_info:
+        main(["build", "--cmu", str(tmp_path), "--out", str(tmp_path / "out"),
+              "--category-power", text])
+    assert exit_info.value.code == 2
+    assert f"--category-power: {message}" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_category_power_is_recorded_and_old_manifests_read_with_its_default(built, cache,

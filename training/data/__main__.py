@@ -9,6 +9,7 @@
                                    [--points P] [--seed S]
 """
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -23,6 +24,16 @@ def _size(num_bytes):
         if num_bytes < 1024 or unit == "GB":
             return f"{num_bytes:.1f} {unit}" if unit != "B" else f"{num_bytes} B"
         num_bytes /= 1024
+
+
+def _finite_float(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
 
 
 def _build(args):
@@ -96,7 +107,8 @@ def main(argv=None):
         build_parser.add_argument("--" + name.replace("_", "-"), type=int,
                                   default=getattr(_DEFAULTS, name),
                                   help=f"{help_text} (default {getattr(_DEFAULTS, name)})")
-    build_parser.add_argument("--category-power", type=float, default=_DEFAULTS.category_power,
+    build_parser.add_argument("--category-power", type=_finite_float,
+                              default=_DEFAULTS.category_power,
                               help="SKR frames: each motion category's share is proportional "
                                    "to its frame count to this power (1: as the motions come; "
                                    "0: every category alike; default 1)")

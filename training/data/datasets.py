@@ -96,6 +96,10 @@ class BuildConfig:
     # of the training frames are salsa and 1 % seated motion.
     category_power: float = 1.0
 
+    def __post_init__(self):
+        if not np.isfinite(self.category_power):
+            raise ValueError(f"category_power must be finite, got {self.category_power}")
+
     @property
     def val_bodies(self):
         return max(2, self.bodies // 8)
@@ -152,7 +156,7 @@ class _Frames:
         """(N,) probabilities of drawing each frame so that a category's share is
         proportional to its frame count to ``power``; frames within a category alike."""
         category = np.repeat(np.array(self.categories), np.diff(self.starts))
-        names, index, counts = np.unique(category, return_inverse=True, return_counts=True)
+        _, index, counts = np.unique(category, return_inverse=True, return_counts=True)
         share = counts.astype(np.float64) ** power
         weights = (share / share.sum() / counts)[index]
         return weights / weights.sum()
