@@ -2,6 +2,7 @@
 
 Needs anny (the 12 bodies of a tiny build take about 10 s once anny's model cache exists).
 """
+import dataclasses
 import json
 
 import numpy as np
@@ -223,17 +224,52 @@ def test_only_smrm_with_longer_clips(built, cache, tmp_path):
 
 def test_category_power_weighs_the_skr_frames_by_category():
     """Shares of the draw by category: as the frames come (power 1), alike (0), or in
-    proportion to the square roots of their frame counts (0.5); frames within one alike."""
-    run = dict(_walk("run", 100).__dict__, category="run")
-    frames = _Frames.of([_walk("a", 200), Motion(**run), _walk("b", 100)])    # 300 walk, 100 run
+    proportion to the square roots of their frame counts (0.5); frames within one alike;
+    finite at powers whose plain powers of the counts would overflow."""
+    run = dataclasses.replace(_walk("run", 100), category="run")
+    frames = _Frames.of([_walk("a", 200), run, _walk("b", 100)])              # 300 walk, 100 run
     walking = np.r_[np.ones(200, bool), np.zeros(100, bool), np.ones(100, bool)]
-    for power, walk_share in ((1.0, 0.75), (0.0, 0.5), (0.5, np.sqrt(3) / (np.sqrt(3) + 1))):
+    for power, walk_share in ((1.0, 0.75), (0.0, 0.5), (0.5, np.sqrt(3) / (np.sqrt(3) + 1)),
+                              (400.0, 1.0), (-400.0, 0.0)):
         weights = frames.category_weights(power)
         assert weights.shape == (400,) and abs(weights.sum() - 1) < 1e-12
-        np.testing.assert_allclose(weights[walking], walk_share / 300)
-        np.testing.assert_allclose(weights[~walking], (1 - walk_share) / 100)
+        np.testing.assert_allclose(weights[walking], walk_share / 300, atol=1e-15)
+        np.testing.assert_allclose(weights[~walking], (1 - walk_share) / 100, atol=1e-15)
     with pytest.raises(ValueError, match="category_power must be finite, got nan"):
         BuildConfig(category_power=float("nan"))
+
+
+def test_category_power_changes_the_skr_frames_alone(built, cache, tmp_path):
+    """Another power draws other SKR frames (training and validation) and leaves the other
+    datasets as they were; a folder built before the field existed takes partial builds with
+    the default power, refuses another, and says which field differs."""
+    out, _ = built
+    stripped = json.loads((out / "manifest.json").read_text())
+    assert stripped["config"]["category_power"] == 1.0
+    del stripped["config"]["category_power"]
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "manifest.json").write_text(json.dumps(stripped))
+    balanced = BuildConfig(**{**TINY.__dict__, "category_power": 0.0})
+    with pytest.raises(ValueError, match=r"differs in \['category_power'\]"):
+        build(MOTIONS, ACTOR_HIP_HEIGHT, old, balanced, cache_dir=cache, show_progress=False,
+              datasets=("skr",))
+    build(MOTIONS, ACTOR_HIP_HEIGHT, old, TINY, cache_dir=cache, show_progress=False,
+          datasets=("skr",))
+    for split in ("train", "val"):
+        assert _load(old / f"skr_{split}.npz")["points"].tobytes() == \
+            _load(out / f"skr_{split}.npz")["points"].tobytes()
+    # MOTIONS are all walks: give one training trial its own category.
+    motions = dict(MOTIONS, train=[MOTIONS["train"][0],
+                                   dataclasses.replace(MOTIONS["train"][1], category="run")])
+    plain, other = tmp_path / "plain", tmp_path / "other"
+    for folder, config in ((plain, TINY), (other, balanced)):
+        build(motions, ACTOR_HIP_HEIGHT, folder, config, cache_dir=cache, show_progress=False,
+              datasets=("skr", "smrm"))
+    assert _load(plain / "skr_train.npz")["joints"].tobytes() != \
+        _load(other / "skr_train.npz")["joints"].tobytes()
+    for key, value in _load(plain / "smrm_train.npz").items():
+        np.testing.assert_array_equal(_load(other / "smrm_train.npz")[key], value, err_msg=key)
 
 
 @pytest.mark.parametrize("text, message", [("nan", "must be finite, got nan"),

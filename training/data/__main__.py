@@ -2,8 +2,8 @@
 
     python -m training.data build --cmu ../shared/data/cmu --out data [--bodies N] [--frames N]
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
-                                  [--clip-stride K] [--clip-frames C] [--body-cache DIR]
-                                  [--only KIND [KIND ...]]
+                                  [--clip-stride K] [--clip-frames C] [--category-power P]
+                                  [--body-cache DIR] [--only KIND [KIND ...]]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
                                    [--points P] [--seed S]
@@ -109,9 +109,10 @@ def main(argv=None):
                                   help=f"{help_text} (default {getattr(_DEFAULTS, name)})")
     build_parser.add_argument("--category-power", type=_finite_float,
                               default=_DEFAULTS.category_power,
-                              help="SKR frames: each motion category's share is proportional "
-                                   "to its frame count to this power (1: as the motions come; "
-                                   "0: every category alike; default 1)")
+                              help="SKR frames (training and validation): each motion "
+                                   "category's share is proportional to its frame count to "
+                                   "this power (1: as the motions come; otherwise drawn with "
+                                   "replacement; 0: every category alike; default 1)")
     build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")

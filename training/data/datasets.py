@@ -73,6 +73,10 @@ VALIDATION_SUBJECTS = frozenset({"06", "09"})
 CHUNK = 256
 
 
+# Config fields added after builds were made, with the value that builds the data as before.
+ADDED_CONFIG_FIELDS = {"category_power": 1.0}
+
+
 @dataclasses.dataclass(frozen=True)
 class BuildConfig:
     """Sizes of a build. Validation gets a tenth of each training count (bodies: an eighth).
@@ -91,9 +95,10 @@ class BuildConfig:
     clip_stride: int = 10        # frames between the starts of consecutive SMRM clips
     clip_frames: int = 30        # frames of an SMRM clip (the paper: 30)
     max_shift: float = 1.0       # horizontal shift augmentation: uniform in +-max_shift, metres
-    # SKR frames: each motion category's share of them is proportional to its frame count to
-    # this power (1: every frame alike, as the motions come; 0: every category alike). Half
-    # of the training frames are salsa and 1 % seated motion.
+    # SKR frames (training and validation): each motion category's share of them is
+    # proportional to its frame count to this power (1: every frame alike, as the motions
+    # come, each drawn once before any twice; otherwise drawn with replacement; 0: every
+    # category alike). README, Data and licences, says why.
     category_power: float = 1.0
 
     def __post_init__(self):
@@ -157,7 +162,8 @@ class _Frames:
         proportional to its frame count to ``power``; frames within a category alike."""
         category = np.repeat(np.array(self.categories), np.diff(self.starts))
         _, index, counts = np.unique(category, return_inverse=True, return_counts=True)
-        share = counts.astype(np.float64) ** power
+        log_share = power * np.log(counts)           # in logs: no overflow at large |power|
+        share = np.exp(log_share - log_share.max())
         weights = (share / share.sum() / counts)[index]
         return weights / weights.sum()
 
@@ -420,11 +426,14 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     previous = out_dir / "manifest.json"
     partial = set(datasets) != set(DATASETS) and previous.is_file()
     old = json.loads(previous.read_text()) if partial else {}
-    # A manifest from before a config field existed was built with its default.
-    if partial and {**dataclasses.asdict(BuildConfig()), **old.get("config", {})} \
-            != dataclasses.asdict(config):
-        raise ValueError(f"{previous} records another build config ({old.get('config')}); "
-                         f"build these datasets with it, or into another folder")
+    # A manifest from before a config field existed was built as that field's default does.
+    recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else None
+    if partial and recorded != dataclasses.asdict(config):
+        differing = sorted(k for k, v in dataclasses.asdict(config).items()
+                           if (recorded or {}).get(k) != v)
+        raise ValueError(f"{previous} records another build config ({old.get('config')}; "
+                         f"differs in {differing}); build these datasets with it, or into "
+                         "another folder")
     # Each dataset has its own random stream, so changing one size leaves the others alone.
     streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
         ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test",
