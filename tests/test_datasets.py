@@ -284,25 +284,6 @@ def test_build_command_refuses_a_bad_category_power(tmp_path, capsys, text, mess
     assert not (tmp_path / "out").exists()
 
 
-def test_category_power_is_recorded_and_old_manifests_read_with_its_default(built, cache,
-                                                                            tmp_path):
-    """A folder built before the field existed takes partial builds with the default power
-    and refuses another; the SKR frames of power 1 are the ones drawn before the option."""
-    out, _ = built
-    manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["config"]["category_power"] == 1.0
-    del manifest["config"]["category_power"]
-    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, TINY, cache_dir=cache, show_progress=False,
-          datasets=("skr",))
-    assert _load(tmp_path / "skr_train.npz")["points"].tobytes() == \
-        _load(out / "skr_train.npz")["points"].tobytes()
-    with pytest.raises(ValueError, match="another build config"):
-        build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**TINY.__dict__,
-                                                                  "category_power": 0.5}),
-              cache_dir=cache, show_progress=False, datasets=("skr",))
-
-
 def test_augment_turns_about_y_and_shifts():
     rng = np.random.default_rng(0)
     rotations = rng.normal(size=(4, NUM_JOINTS, 4)).astype(np.float32)

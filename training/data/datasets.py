@@ -427,10 +427,10 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     partial = set(datasets) != set(DATASETS) and previous.is_file()
     old = json.loads(previous.read_text()) if partial else {}
     # A manifest from before a config field existed was built as that field's default does.
-    recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else None
-    if partial and recorded != dataclasses.asdict(config):
-        differing = sorted(k for k, v in dataclasses.asdict(config).items()
-                           if (recorded or {}).get(k) != v)
+    recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else {}
+    wanted = dataclasses.asdict(config)
+    if partial and recorded != wanted:
+        differing = sorted(k for k, v in wanted.items() if recorded.get(k) != v)
         raise ValueError(f"{previous} records another build config ({old.get('config')}; "
                          f"differs in {differing}); build these datasets with it, or into "
                          "another folder")
