@@ -9,16 +9,19 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     model                the weights given (default: the shipped weights), as ``Retargeter``
                          runs them by default: SKR's joints moved by the joint refiner
                          (minretarget.refine), smoothed over time (minretarget.smoothing)
-                         and denoised (minretarget.denoise) before SMRM, feet held on their
-                         contacts after it (minretarget.contacts)
+                         and denoised (minretarget.denoise) before SMRM, whose analytic
+                         prior allows for the two bodies' rest poses (minretarget.rest_pose),
+                         feet held on their contacts after it (minretarget.contacts)
     model, no refiner    the same without the joint refiner (source and target skeletons)
     model, no denoiser   the same as the model without the skeleton denoiser
     model, no foot lock  the same as the model without the foot contacts
+    model, no rest pose  the same as the model with SMRM's plain analytic prior (target bones
+                         turned onto the source bones, no rest-pose model)
     model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
                          averaged with those of each cloud's mirror image
     model, paper pipeline  the paper's: SKR once on the target T-pose (not mirror-averaged),
                          SKR's source joints as they come (no refiner, no smoothing, no
-                         denoiser), SMRM's rotations as they come
+                         denoiser), SMRM's plain prior, its rotations as they come
     analytic             the model's (smoothed, denoised) source bones, each target bone
                          rotated onto its source bone (minretarget.analytic), FK, LBS with
                          SKIN weights: no SMRM
@@ -68,7 +71,7 @@ from minretarget.weights import load_weights
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
 ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock",
-        "model, mirrored source",
+        "model, no rest pose", "model, mirrored source",
         "model, paper pipeline", "analytic", "analytic, mirrored source", "oracle source",
         "oracle target", "oracle both")
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
@@ -118,18 +121,20 @@ def run_sequence(weights, sequence, wanted=ROWS):
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
     paper = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
-                       refine=False, denoise=False)
+                       refine=False, denoise=False, rest_pose=False)
     paper.set_target(points)                         # its own rig: SKR once on the T-pose
     unrefined = Retargeter(weights, refine=False)
     unrefined.set_target(points)                     # its own rig: SKR's, not refined
     no_lock, no_denoiser = Retargeter(weights, foot_lock=None), Retargeter(weights, denoise=False)
+    no_rest_pose = Retargeter(weights, rest_pose=False)
     raw = Retargeter(weights, smoothing=None, denoise=False)
     mirrored = Retargeter(weights, mirror_source=True)
     oracle_rig = Retargeter(weights)
     oracle_rig_raw = Retargeter(weights, smoothing=None, denoise=False)
     leashed = {row: Retargeter(weights, foot_lock=FootLock(max_offset=leash))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
-    for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (raw, rig), (mirrored, rig),
+    for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
+                                 (raw, rig), (mirrored, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
@@ -156,6 +161,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "model, no refiner": lambda: stream(unrefined, skr_alone()),
             "model, no denoiser": lambda: stream(no_denoiser, raw_joints),
             "model, no foot lock": lambda: stream(no_lock, raw_joints),
+            "model, no rest pose": lambda: stream(no_rest_pose, raw_joints),
             "model, mirrored source": lambda: stacked(mirrored_frames()),
             "model, paper pipeline": lambda: stream(paper, skr_alone()),
             "analytic": lambda: analytic(frames),

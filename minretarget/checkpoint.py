@@ -5,7 +5,7 @@ Files in the output folder while a run goes on (removed when it completes):
                       and at Ctrl-C: ``frames_done``; the SMRM state after those frames
                       (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
                       ``previous_joints``, ``smoothed_joints``, ``joint_velocity``,
-                      ``denoise_hidden``, ``source_leg_length`` float64,
+                      ``denoise_hidden``, ``source_bone_lengths``,
                       ``frames_seen``, the foot contacts' ``toe_filtered``, ``toe_anchor``,
                       ``foot_offset``, ``feet_planted``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
@@ -38,10 +38,11 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 6          # 2: the state holds the smoothed joints, their speed, the longest leg;
+VERSION = 7          # 2: the state holds the smoothed joints, their speed, the longest leg;
 #                      3: and the foot contacts; 4: the mean leg length, not the longest;
 #                      5: and the denoiser's (the smoothed and the denoised joints apart);
-#                      6: the denoiser's two GRU states (the skeleton's, its mirror image's)
+#                      6: the denoiser's two GRU states (the skeleton's, its mirror image's);
+#                      7: the mean source bone lengths (for the rest poses), not the leg's
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -123,13 +124,13 @@ def _digest(arrays):
 
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
-               foot_lock=None, mirror_source=False, refine=True, denoise=True):
+               foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
-    whether SKR also runs on the source's mirror images, whether its joints are refined and
-    whether they are denoised."""
+    whether SKR also runs on the source's mirror images, whether its joints are refined,
+    whether they are denoised and whether SMRM's prior allows for the rest poses."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
@@ -142,7 +143,8 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             # Recorded only when it changes the result, so runs from before the refiner and
             # runs with weights that have none still match their checkpoints.
             **({"refine": True} if refine and weights.refine is not None else {}),
-            **({"denoise": True} if denoise and weights.denoise is not None else {})}
+            **({"denoise": True} if denoise and weights.denoise is not None else {}),
+            **({"rest_pose": True} if rest_pose and weights.rest_pose is not None else {})}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):
@@ -152,9 +154,7 @@ def save_checkpoint(out_dir, run, state, frames_done, track):
     arrays = {"version": np.array(VERSION), "run": np.array(json.dumps(run, sort_keys=True)),
               "frames_done": np.array(frames_done, np.int64)}
     if state is not None:
-        arrays.update(state._asdict(),
-                      source_leg_length=np.array(state.source_leg_length, np.float64),
-                      frames_seen=np.array(state.frames_seen, np.int64))
+        arrays.update(state._asdict(), frames_seen=np.array(state.frames_seen, np.int64))
     with atomic_write(Path(out_dir) / CHECKPOINT) as file:
         np.savez(file, **arrays)
 
@@ -176,7 +176,8 @@ def load_checkpoint(out_dir, run, weights):
     except ARCHIVE_ERRORS as error:
         raise ValueError(f"{path}: unreadable checkpoint ({error}); the output cannot be "
                          "resumed (--overwrite starts again)") from None
-    # Over both records' keys: an option recorded only when on (refine, denoise) may be off.
+    # Over both records' keys: an option recorded only when on (refine, denoise, rest_pose)
+    # may be off.
     differences = [f"{key} {saved.get(key)!r} then, {run.get(key)!r} now"
                    for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
     if differences:
@@ -189,8 +190,7 @@ def load_checkpoint(out_dir, run, weights):
         return 0, None
     try:
         state = MotionState(**{name: arrays[name] for name in MotionState._fields})
-        state = check_state(weights.smrm, state._replace(
-            source_leg_length=float(state.source_leg_length), frames_seen=int(state.frames_seen)),
+        state = check_state(weights.smrm, state._replace(frames_seen=int(state.frames_seen)),
             weights.denoise if run.get("denoise") else None)
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: bad saved state: {error}") from None

@@ -4,7 +4,7 @@
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
                          [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
                          [--weights FILE] [--no-smoothing] [--no-foot-lock]
-                         [--mirror-source] [--no-refine] [--no-denoise]
+                         [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
@@ -46,7 +46,7 @@ DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
-                    mirror_source=False, refine=True, denoise=True):
+                    mirror_source=False, refine=True, denoise=True, rest_pose=True):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -57,7 +57,7 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
     # warn=False: the command line checks the inputs itself, naming files and options.
     return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
                                    foot_lock=foot_lock, mirror_source=mirror_source,
-                                   refine=refine, denoise=denoise)
+                                   refine=refine, denoise=denoise, rest_pose=rest_pose)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -123,7 +123,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     run = run_record(source, retargeter.target, retargeter.weights, formats, space,
                      smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
                      mirror_source=retargeter.mirror_source, refine=retargeter.refine,
-                     denoise=retargeter.denoise,
+                     denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
                      **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
@@ -183,7 +183,7 @@ def _retarget(args):
         foot_lock = foot_lock._replace(max_offset=args.foot_leash)
     retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
                                  foot_lock, args.mirror_source, not args.no_refine,
-                                 not args.no_denoise)
+                                 not args.no_denoise, not args.no_rest_pose)
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -300,6 +300,10 @@ def build_parser():
                           help="hand SMRM the smoothed source skeleton (default: the weights' "
                                "denoiser, trained on SKR's skeletons of moving bodies, takes "
                                "out most of its jitter first)")
+    retarget.add_argument("--no-rest-pose", action="store_true",
+                          help="align the target's T-pose bones with the source's as they "
+                               "are (default: the weights' rest-pose model first turns them by "
+                               "how the two bodies' proportions change their rest poses)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

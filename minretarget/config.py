@@ -40,15 +40,18 @@ class ModelConfig:
     # denoise_layers deep and denoise_hidden wide; none when denoise_hidden is 0.
     denoise_hidden: int = 0
     denoise_layers: int = 1
+    # Not in the paper: the rest-pose model (minretarget.rest_pose) SMRM's analytic prior uses
+    # to allow for the two bodies' rest poses.
+    rest_pose: bool = False
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
         for field in ("skr_point_widths", "skr_head_widths", "skin_widths",
                       "refine_point_widths", "refine_head_widths"):
             object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
-        if not isinstance(self.smrm_analytic_prior, bool):
-            raise ValueError(f"smrm_analytic_prior must be true or false, got "
-                             f"{self.smrm_analytic_prior!r}")
+        for flag in ("smrm_analytic_prior", "rest_pose"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
         if len(self.skr_point_widths) != 3 or len(self.skr_head_widths) != 2:
             raise ValueError("skr_point_widths needs 3 widths and skr_head_widths 2, got "
                              f"{self.skr_point_widths} and {self.skr_head_widths}")

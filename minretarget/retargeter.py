@@ -40,7 +40,7 @@ class RetargetedFrame(NamedTuple):
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
                  foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
-                 denoise=True):
+                 denoise=True, rest_pose=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -62,7 +62,10 @@ class Retargeter:
         ``denoise``: pass the smoothed source skeleton through the weights' denoiser
         (``denoise``: a GRU trained on SKR's skeletons of moving bodies), if they have one;
         False to hand SMRM the smoothed skeleton (the paper's pipeline). Set it before a stream
-        starts (or ``reset()``): a stream refuses a denoiser other than the one it began with."""
+        starts (or ``reset()``): a stream refuses a denoiser other than the one it began with.
+        ``rest_pose``: let SMRM's analytic prior allow for the two bodies' rest poses with the
+        weights' rest-pose model (``rest_pose``), if they have one; False for the plain
+        analytic prior (the paper has neither)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
@@ -72,16 +75,17 @@ class Retargeter:
         self.mirror_source = bool(mirror_source)
         self.refine = bool(refine)
         self.denoise = bool(denoise)
+        self.rest_pose = bool(rest_pose)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True, denoise=True):
+                     refine=True, denoise=True, rest_pose=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine, denoise)
+                   mirror_source, refine, denoise, rest_pose)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -138,6 +142,11 @@ class Retargeter:
     def denoiser(self):
         """The weights' denoiser if ``denoise`` is on and they have one, else None."""
         return self.weights.denoise if self.denoise else None
+
+    @property
+    def rest_pose_model(self):
+        """The weights' rest-pose model if ``rest_pose`` is on and they have one, else None."""
+        return self.weights.rest_pose if self.rest_pose else None
 
     def step(self, points):
         """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
@@ -198,7 +207,8 @@ class Retargeter:
         -> rotations, root."""
         rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
                                                      source_joints, self.target.tpose_joints,
-                                                     self.smoothing, self.denoiser)
+                                                     self.smoothing, self.denoiser,
+                                                     self.rest_pose_model)
         rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
                                             self._state, self.foot_lock)
         return rotations, root

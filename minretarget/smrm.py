@@ -10,7 +10,9 @@ Per frame, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 
     4. heads: (J, 4) unit quaternions (the root's relative to H_t) and a root offset d_t (3, m);
        with ``smrm_analytic_prior`` weights each quaternion is instead a correction applied
        after the analytic rotation of x_t onto s (``minretarget.analytic``), in the joint's
-       frame, and step 5's heading turn is not needed (the analytic root rotation has it)
+       frame, and step 5's heading turn is not needed (the analytic root rotation has it);
+       with rest-pose weights (``minretarget.rest_pose``) the prior turns onto x_t the bones of
+       s as turned by the two bodies' predicted rest poses, from the mean source bone lengths
     5. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, where k_t = leg length of s /
        the mean source leg length over the frames seen so far (the source root scaled to the
        target's size, then corrected). The mean: with the joint refiner (minretarget.refine)
@@ -28,12 +30,13 @@ from ._jit import kernel
 from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
-from .conventions import NUM_JOINTS
+from .conventions import NUM_JOINTS, PARENTS
 from .denoise import DenoiserWeights, _denoise_mirror_averaged_kernel, hidden_shape
 from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
 from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401
+from .rest_pose import NUM_BONES, RestPoseWeights, _prior_reference_kernel
 from .smoothing import _parameters, _smooth_kernel, check_smoothing
 from .validation import as_float32_array
 
@@ -59,7 +62,8 @@ class MotionState(NamedTuple):
     joint_velocity: np.ndarray   # (J, 3) float32 its velocity estimate (smoothing), m/s
     denoise_hidden: np.ndarray   # (2, layers, H) float32 the denoiser's GRUs (the skeleton's
                                  # and its mirror image's); (2, 0, 0) without one
-    source_leg_length: float     # mean source leg length over the frames seen, metres
+    source_bone_lengths: np.ndarray  # (B,) float32 mean source bone lengths over the frames
+                                     # seen, metres (``rest_pose.bone_lengths``'s order)
     frames_seen: int
     # Foot contacts (``minretarget.contacts``), per leg (left, right):
     toe_filtered: np.ndarray     # (2, 3) float32 the target's low-passed toe positions, metres
@@ -78,14 +82,15 @@ def initial_state(weights, first_joints, denoiser=None):
     feet = np.zeros((2, 3), dtype=np.float32)
     return MotionState(zeros, zeros.copy(), first_joints, first_joints.copy(),
                        np.zeros_like(first_joints),
-                       np.zeros(hidden_shape(denoiser), dtype=np.float32), 0.0, 0,
+                       np.zeros(hidden_shape(denoiser), dtype=np.float32),
+                       np.zeros(NUM_BONES, dtype=np.float32), 0,
                        feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool))
 
 
 def check_state(weights, state, denoiser=None):
     """A MotionState checked against ``weights`` and ``denoiser`` (e.g. one read back from a
-    file): hidden states of the right shapes, finite (J, 3) joints and velocities, a count
-    and a finite length >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags.
+    file): hidden states of the right shapes, finite (J, 3) joints and velocities, a count,
+    finite (B,) bone lengths >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags.
     Returns it with C-contiguous float32 arrays; ValueError names the field."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     if not isinstance(state, MotionState):
@@ -96,17 +101,22 @@ def check_state(weights, state, denoiser=None):
               for name in ("previous_joints", "smoothed_joints", "joint_velocity")]
     denoise = as_float32_array(state.denoise_hidden, "state.denoise_hidden",
                                hidden_shape(denoiser))
+    lengths = as_float32_array(state.source_bone_lengths, "state.source_bone_lengths",
+                               (NUM_BONES,))
+    if not (lengths >= 0).all():
+        raise ValueError(f"state.source_bone_lengths must be >= 0, got {lengths.min()} at "
+                         f"bone {int(lengths.argmin())}")
     try:
-        leg, frames = float(state.source_leg_length), int(state.frames_seen)
+        frames = int(state.frames_seen)
     except (TypeError, ValueError, OverflowError):                  # None, "x", inf
-        leg, frames = np.nan, -1
-    if frames < 0 or frames != state.frames_seen or not 0 <= leg < np.inf:
-        raise ValueError(f"state: frames_seen {state.frames_seen!r} and source_leg_length "
-                         f"{state.source_leg_length!r} must be a count and a finite length >= 0")
-    return MotionState(encoder, decoder, *joints, denoise, leg, frames, *check_feet(state))
+        frames = -1
+    if frames < 0 or frames != state.frames_seen:
+        raise ValueError(f"state: frames_seen must be a count, got {state.frames_seen!r}")
+    return MotionState(encoder, decoder, *joints, denoise, lengths, frames, *check_feet(state))
 
 
-def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, denoiser=None):
+def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, denoiser=None,
+                  rest_pose=None):
     """Retarget one frame.
 
     Args:
@@ -119,6 +129,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
         denoiser: ``denoise.DenoiserWeights`` to denoise them next (step 0'), or None (the
             paper's pipeline); a state from a stream with another shape of denoiser (or none)
             is refused.
+        rest_pose: ``rest_pose.RestPoseWeights`` for the prior to allow for the two bodies'
+            rest poses (step 4), or None (the plain analytic prior).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new MotionState (its ``previous_joints``: the source joints SMRM saw).
@@ -129,6 +141,9 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     if denoiser is not None and not isinstance(denoiser, DenoiserWeights):
         raise ValueError(f"denoiser must be DenoiserWeights or None, got "
                          f"{type(denoiser).__name__}")
+    if rest_pose is not None and not isinstance(rest_pose, RestPoseWeights):
+        raise ValueError(f"rest_pose must be RestPoseWeights or None, got "
+                         f"{type(rest_pose).__name__}")
     if state is None:
         state = initial_state(weights, source_joints, denoiser)
     if state.denoise_hidden.shape != hidden_shape(denoiser):
@@ -146,14 +161,22 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     decoder_hidden = state.decoder_hidden.copy()
     # At a stream's start the root has not moved: its previous place is its own (denoised).
     previous_root = seen[0] if state.frames_seen == 0 else state.previous_joints[0]
-    rotations, root, leg = _retarget_step_kernel(
-        weights, seen, target_tpose, encoder_hidden, decoder_hidden, previous_root,
-        float(state.source_leg_length), state.frames_seen)
+    lengths = state.source_bone_lengths.copy()
+    rest_directions = _NO_REST_POSE if rest_pose is None else rest_pose.directions
+    rotations, root = _retarget_step_kernel(
+        weights, seen, target_tpose, rest_directions, encoder_hidden, decoder_hidden,
+        previous_root, lengths, state.frames_seen)
     new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
                                previous_joints=seen, smoothed_joints=smoothed,
                                joint_velocity=velocity, denoise_hidden=denoise_hidden,
-                               source_leg_length=leg, frames_seen=state.frames_seen + 1)
+                               source_bone_lengths=lengths, frames_seen=state.frames_seen + 1)
     return rotations, root, new_state
+
+
+# The bones (rest_pose.bone_lengths' order) of _leg_length's chains, and no rest-pose model.
+LEG_BONES = (3, 4, 6, 7)
+_NO_REST_POSE = np.zeros((0, 3 * NUM_BONES), dtype=np.float32)
+_PARENTS = np.asarray(PARENTS, dtype=np.int64)
 
 
 @kernel
@@ -167,13 +190,18 @@ def _leg_length(joints):
 
 
 @kernel
-def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
-                          decoder_hidden, previous_root, source_leg_length, frames_seen):
-    """One frame, the module docstring's steps 1-5; updates the hidden states in place.
-    Returns rotations (J, 4), root (3,) and the mean source leg length with this frame's
-    (float: a running mean over ``frames_seen`` frames before it)."""
+def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions, encoder_hidden,
+                          decoder_hidden, previous_root, source_bone_lengths, frames_seen):
+    """One frame, the module docstring's steps 1-5; updates the hidden states in place, and
+    ``source_bone_lengths`` (B,), the mean over ``frames_seen`` frames, to include this one.
+    ``rest_directions``: RestPoseWeights.directions, or (0, B*3) for the plain prior.
+    Returns rotations (J, 4) and root (3,)."""
     j = source_joints.shape[0]
     root = source_joints[0]
+    for b in range(j - 1):
+        bone = source_joints[b + 1] - source_joints[_PARENTS[b + 1]]
+        length = np.sqrt(bone[0] ** 2 + bone[1] ** 2 + bone[2] ** 2)
+        source_bone_lengths[b] += (length - source_bone_lengths[b]) / np.float32(frames_seen + 1)
     # 1-2. heading, and the features in the heading frame (turned by -heading)
     features, sin, cos = heading_features(source_joints, previous_root)
     # 3. encoder, then decoder over [encoded, T-pose relative to its root]
@@ -189,8 +217,13 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
         q[k] /= max(norm, np.float32(1e-8))
     offset = dense(decoded, weights.root_head, False)[0]                # (3,)
     if weights.analytic_prior:   # 4'. each a correction after the analytic rotation, in its frame
+        reference = target_tpose
+        if rest_directions.shape[0] > 0:
+            reference = np.empty_like(target_tpose)
+            _prior_reference_kernel(rest_directions, target_tpose, source_bone_lengths,
+                                    reference)
         prior = np.empty((j, 4), dtype=np.float32)
-        _analytic_frame(source_joints, target_tpose, prior, np.empty((j, 3, 3)))
+        _analytic_frame(source_joints, reference, prior, np.empty((j, 3, 3)))
         for k in range(j):
             _quaternion_multiply_one(prior[k], q[k].copy(), q[k])
     else:                # 5. root rotation turned by the heading (half angle: stable at pi)
@@ -200,13 +233,15 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, encoder_hidden,
         q[0, 0], q[0, 1], q[0, 2], q[0, 3] = hw * w - hy * y, hw * x + hy * z, \
             hw * y + hy * w, hw * z - hy * x
     # ... and the root: the source root scaled to the target's size, plus the turned offset
-    source_leg_length += (np.float64(_leg_length(source_joints)) - source_leg_length) / (
-        frames_seen + 1)
     # (a degenerate source whose legs have no length must not divide by zero)
-    scale = np.float32(np.float64(_leg_length(target_tpose)) / max(source_leg_length, 1e-6))
+    source_leg = np.float32(0.0)
+    for b in LEG_BONES:
+        source_leg += source_bone_lengths[b]
+    source_leg /= np.float32(2.0)
+    scale = np.float32(_leg_length(target_tpose) / max(source_leg, np.float32(1e-6)))
     out_root = np.empty(3, dtype=np.float32)
     out_root[0], out_root[1], out_root[2] = turn_about_up(offset[0], offset[1], offset[2],
                                                            sin, cos)
     for a in range(3):
         out_root[a] += scale * root[a]
-    return q, out_root, source_leg_length
+    return q, out_root

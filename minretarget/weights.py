@@ -28,6 +28,7 @@ from .formats.npz import load_npz
 from .nn import MLP, Dense, GRULayer
 from .denoise import DenoiserWeights
 from .refine import RefinerWeights
+from .rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from .skr import PointNetWeights, SKRWeights
 from .smrm import SMRMWeights
 
@@ -44,6 +45,7 @@ class Weights(NamedTuple):
     metadata: dict
     refine: RefinerWeights = None    # the joint refiner, if the config has one
     denoise: DenoiserWeights = None  # the skeleton denoiser, if the config has one
+    rest_pose: RestPoseWeights = None  # the rest-pose model, if the config has one
 
 
 class _Shape(tuple):
@@ -97,6 +99,8 @@ def weight_template(config):
         stages["denoise"] = DenoiserWeights(
             _gru_template(j * 3 + 3, config.denoise_hidden, config.denoise_layers),
             Dense(_Shape((config.denoise_hidden, j * 3)), _Shape((j * 3,))))
+    if config.rest_pose:
+        stages["rest_pose"] = RestPoseWeights(_Shape((NUM_FEATURES, 3 * NUM_BONES)))
     return stages
 
 
@@ -128,7 +132,7 @@ def flatten_weights(weights):
     arrays = {"format_version": np.array(FORMAT_VERSION),
               "config": np.array(weights.config.to_json()),
               "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
-    for stage in ("skr", "smrm", "skin", "refine", "denoise"):
+    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose"):
         if getattr(weights, stage) is not None:
             arrays.update(_leaves(getattr(weights, stage), stage))
     return arrays

@@ -72,7 +72,8 @@ def initial_state_for_feet():
     no_gru = np.zeros((1, 1), np.float32)
     joints, feet = np.zeros((NUM_JOINTS, 3), np.float32), np.zeros((2, 3), np.float32)
     return MotionState(no_gru, no_gru, joints, joints, joints, np.zeros((0, 0), np.float32),
-                       0.0, 0, feet, feet, feet, np.zeros(2, bool))
+                       np.zeros(NUM_JOINTS - 1, np.float32), 0, feet, feet, feet,
+                       np.zeros(2, bool))
 
 
 def toes_of(rotations, root, tpose):

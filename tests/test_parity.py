@@ -47,15 +47,24 @@ def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp
     np.testing.assert_allclose(rotations, want["rotations"], atol=1e-5)
 
 
-def test_smrm_with_the_analytic_prior_matches_torch(tmp_path):
+@pytest.mark.parametrize("rest_pose", [False, True])
+def test_smrm_with_the_analytic_prior_matches_torch(tmp_path, rest_pose):
     """SMRM's corrections applied after the analytic rotations: the runtime's kernel (and its
-    analytic kernel) against training.analytic and the torch model, end to end."""
-    model = random_reference(dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True), 3)
+    analytic kernel) against training.analytic and the torch model, end to end; with
+    ``rest_pose``, the prior's reference skeleton from the rest-pose model (random here) and
+    the mean source bone lengths, both sides."""
+    config = dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True, rest_pose=rest_pose)
+    model = random_reference(config, 3)
+    if rest_pose:
+        with torch.no_grad():
+            model.smrm.rest_directions.normal_(0.0, 1.0,
+                                               generator=torch.Generator().manual_seed(5))
     export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine,
                    denoise=model.denoise)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None, foot_lock=None,
                                          mirror_target=False)
     assert retargeter.weights.config.smrm_analytic_prior and retargeter.weights.smrm.analytic_prior
+    assert (retargeter.rest_pose_model is not None) == rest_pose
     target, sources = random_stream(seed=4, frames=40)
     want = reference_outputs(model, target, sources)
     retargeter.set_target(target)

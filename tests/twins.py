@@ -294,3 +294,26 @@ def analytic_rotations(source, tpose):
             world.append(turn @ parent)
             out[t, j] = world[j] if j == 0 else world[PARENTS[j]].T @ world[j]
     return out
+
+
+def rest_pose_reference(directions, tpose, source_lengths):
+    """minretarget.rest_pose.prior_reference, written out: predicted rest directions of both
+    bodies from their features, each target bone turned by their difference, lengths kept."""
+    tpose = np.asarray(tpose, np.float64)
+    bones = [tpose[c] - tpose[PARENTS[c]] for c in range(1, len(PARENTS))]
+    target_lengths = np.array([np.linalg.norm(b) for b in bones])
+    mirror_bone = [MIRROR[c] - 1 for c in range(1, len(PARENTS))]
+
+    def predicted(lengths):
+        symmetric = np.array([(lengths[b] + lengths[m]) / 2 for b, m in enumerate(mirror_bone)])
+        total = symmetric.sum()
+        features = np.concatenate([[1.0], symmetric / total, [total]])
+        return np.array([_unit(d) for d in (features @ directions).reshape(-1, 3)])
+
+    turn = predicted(np.asarray(source_lengths, np.float64)) - predicted(target_lengths)
+    out = [tpose[0]]
+    for c in range(1, len(PARENTS)):
+        b = c - 1
+        out.append(out[PARENTS[c]] + _unit(bones[b] / target_lengths[b] + turn[b])
+                   * target_lengths[b])
+    return np.array(out)

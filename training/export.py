@@ -12,6 +12,7 @@ import torch
 from minretarget.denoise import DenoiserWeights
 from minretarget.nn import MLP, Dense, GRULayer
 from minretarget.refine import RefinerWeights
+from minretarget.rest_pose import RestPoseWeights
 from minretarget.skr import PointNetWeights, SKRWeights
 from minretarget.smrm import SMRMWeights
 from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
@@ -77,7 +78,8 @@ def refine_runtime_weights(refine):
 
 def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
     """The torch modules -> minretarget Weights (checked against their config); ``refine``
-    the JointRefiner and ``denoise`` the SkeletonDenoiser, if the config has them."""
+    the JointRefiner and ``denoise`` the SkeletonDenoiser, if the config has them; SMRM's
+    ``rest_directions`` (its config's ``rest_pose``) become the rest-pose model."""
     config = smrm.config if refine is not None else smrm.config.without_refiner()
     config = config if denoise is not None else config.without_denoiser()
     skr_weights = skr_runtime_weights(skr)
@@ -88,8 +90,10 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
     refine_weights = None if refine is None else refine_runtime_weights(refine)
     denoise_weights = None if denoise is None else DenoiserWeights(_gru(denoise.gru),
                                                                    _dense(denoise.head))
+    rest_pose = (RestPoseWeights(_array(smrm.rest_directions)) if smrm.config.rest_pose
+                 else None)
     weights = Weights(config, skr_weights, smrm_weights, skin_weights, dict(metadata or {}),
-                      refine_weights, denoise_weights)
+                      refine_weights, denoise_weights, rest_pose)
     # Round-trip through the loader's checks so a wrong export fails here, not at load.
     return weights_from_arrays(flatten_weights(weights), source="exported weights")
 
@@ -147,8 +151,9 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     """
     # Without a refiner to load, weights from before it (no refiner) fit modules with one;
     # the analytic prior changes what SMRM's rotation head means, not the shapes (see
-    # train.initial_models, which then resets that head).
-    mine, theirs = (dataclasses.replace(c, smrm_analytic_prior=False)
+    # train.initial_models, which then resets that head); the rest-pose model is loaded when
+    # both have one (train.main gives the modules one when the weights have it).
+    mine, theirs = (dataclasses.replace(c, smrm_analytic_prior=False, rest_pose=False)
                     for c in (smrm.config, weights.config))
     if refine is None:
         mine, theirs = mine.without_refiner(), theirs.without_refiner()
@@ -169,6 +174,9 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     _import_gru(smrm.decoder, weights.smrm.decoder)
     _set_dense(smrm.rotation_head, weights.smrm.rotation_head)
     _set_dense(smrm.root_head, weights.smrm.root_head)
+    if smrm.config.rest_pose and weights.rest_pose is not None:
+        with torch.no_grad():
+            smrm.rest_directions.copy_(torch.from_numpy(weights.rest_pose.directions))
     _import_linears(skin.hidden, weights.skin.hidden)
     _set_dense(skin.output, weights.skin.output)
     if refine is not None:

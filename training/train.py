@@ -18,6 +18,7 @@ Validation uses the held-out training subjects and bodies (``*_val.npz``), never
 """
 import argparse
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -627,11 +628,14 @@ def main(argv=None):
     if args.threads:
         torch.set_num_threads(args.threads)
     recipe = load_recipe(args.recipe, args.set)
+    init = load_weights(args.init) if args.init else None
+    if init is not None and init.config.rest_pose:     # fitted, not trained: carried along
+        recipe = dataclasses.replace(recipe, model=dataclasses.replace(recipe.model,
+                                                                       rest_pose=True))
     run_dir = Path(args.out)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "recipe.json").write_text(recipe.to_json())
     torch.manual_seed(recipe.seed)
-    init = load_weights(args.init) if args.init else None
     # The recipe's own stages: refine and denoise only if its model has them.
     optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}
     own = tuple(n for n in STAGES if optional.get(n, True))

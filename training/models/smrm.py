@@ -9,13 +9,15 @@ Per frame t, with source joints x_t (J, 3) and the target's T-pose skeleton s (J
     4. decoder GRU (layers x H) over [encoder output, s - s[0]] (the T-pose relative to its root)
     5. heads: (J, 4) unit quaternions, the root's relative to H_t, and a root offset d_t (3);
        with ``smrm_analytic_prior`` each is instead a correction applied after the analytic
-       rotation of x_t onto s (training.analytic), in the joint's own frame
+       rotation of x_t onto s (training.analytic), in the joint's own frame; with the config's
+       ``rest_pose``, onto s as the rest-pose model turns it (minretarget.rest_pose), from the
+       mean source bone lengths so far
     6. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, with k_t = leg length of s /
        the mean source leg length over the frames seen so far (the Mixamo-style scaling of the
        source root, corrected by the network; see minretarget.smrm for why the mean)
     7. FK of the quaternions on s with root r_t gives the retargeted joints (J, 3)
-The recurrent state (both GRUs' hidden states, the previous source root, the mean leg length
-and the frame count) is explicit, so a stream can be fed one frame at a time and gives the same result as
+The recurrent state (both GRUs' hidden states, the previous source root, the mean source bone
+lengths and the frame count) is explicit, so a stream can be fed one frame at a time and gives the same result as
 the whole sequence at once.
 """
 from typing import NamedTuple
@@ -24,15 +26,18 @@ import torch
 from torch import nn
 
 from minretarget.config import ModelConfig
+from minretarget.rest_pose import NUM_BONES, NUM_FEATURES
+from minretarget.smrm import LEG_BONES
 from training.analytic import analytic_rotations
 from training.kinematics import forward_kinematics, normalize_quaternions, quaternion_multiply
+from training.rest_pose import torch_bone_lengths, torch_prior_reference
 
 
 class MotionState(NamedTuple):
     encoder_hidden: torch.Tensor   # (layers, B, H)
     decoder_hidden: torch.Tensor   # (layers, B, H)
     previous_root: torch.Tensor    # (B, 3) source root of the last frame seen, metres
-    source_leg_length: torch.Tensor  # (B,) mean source leg length over the frames, metres
+    source_bone_lengths: torch.Tensor  # (B, bones) mean source bone lengths over the frames
     frames_seen: torch.Tensor      # (B,) frames seen so far
 
 
@@ -100,6 +105,8 @@ class MotionRetargeter(nn.Module):
             self.root_head.weight.mul_(0.1)
             self.root_head.bias.zero_()
         self.reset_rotation_head()
+        if config.rest_pose:         # fitted, not trained (training.rest_pose)
+            self.register_buffer("rest_directions", torch.zeros(NUM_FEATURES, 3 * NUM_BONES))
 
     def reset_rotation_head(self):
         """Identity rotations out (zero weights with the analytic prior): what a network
@@ -115,7 +122,7 @@ class MotionRetargeter(nn.Module):
         b, c = first_joints.shape[0], self.config
         zeros = first_joints.new_zeros((c.smrm_layers, b, c.smrm_hidden))
         return MotionState(zeros, zeros.clone(), first_joints[:, 0, :].clone(),
-                           first_joints.new_zeros(b), first_joints.new_zeros(b))
+                           first_joints.new_zeros((b, NUM_BONES)), first_joints.new_zeros(b))
 
     def forward(self, source_joints, target_tpose, state=None):
         """Retarget a clip (or one frame, T = 1) continuing from ``state``.
@@ -137,24 +144,29 @@ class MotionRetargeter(nn.Module):
         decoder_input = torch.cat([encoded, skeleton[:, None, :].expand(b, t, -1)], dim=-1)
         decoded, decoder_hidden = self.decoder(decoder_input, state.decoder_hidden)
         rotations = normalize_quaternions(self.rotation_head(decoded).view(b, t, j, 4))
+        # The mean source bone lengths so far (B, T, bones).
+        frames = state.frames_seen[:, None] + torch.arange(1, t + 1, device=source_joints.device)
+        lengths = ((state.frames_seen[:, None] * state.source_bone_lengths)[:, None]
+                   + torch_bone_lengths(source_joints).cumsum(dim=1)) / frames[..., None]
         if self.config.smrm_analytic_prior:
-            prior = analytic_rotations(source_joints, target_tpose[:, None])
+            reference = target_tpose[:, None]
+            if self.config.rest_pose:
+                reference = torch_prior_reference(self.rest_directions, reference, lengths)
+            prior = analytic_rotations(source_joints, reference)
             rotations = quaternion_multiply(prior, rotations)
         else:
             rotations = torch.cat([turn_quaternions(rotations[:, :, :1], sin_cos[:, :, None]),
                                    rotations[:, :, 1:]], dim=2)
 
-        # The mean source leg length so far, then the scaled source root plus the offset.
-        legs = leg_length(source_joints)                                # (B, T)
-        frames = state.frames_seen[:, None] + torch.arange(1, t + 1, device=legs.device)
-        mean = ((state.frames_seen * state.source_leg_length)[:, None]
-                + legs.cumsum(dim=1)) / frames                            # (B, T)
-        scale = leg_length(target_tpose)[:, None] / mean.clamp_min(1e-6)   # (B, T)
+        # The source root scaled by the mean leg lengths (the same chains as leg_length's),
+        # plus the offset.
+        legs = lengths[..., list(LEG_BONES)].sum(-1) / 2                 # (B, T)
+        scale = leg_length(target_tpose)[:, None] / legs.clamp_min(1e-6)   # (B, T)
         offset = turn_vectors(self.root_head(decoded)[:, :, None, :], sin_cos)[:, :, 0, :]
         root = scale[..., None] * source_joints[:, :, 0, :] + offset
         joints, _ = forward_kinematics(rotations, root, target_tpose[:, None])
         new_state = MotionState(encoder_hidden, decoder_hidden, source_joints[:, -1, 0, :],
-                                mean[:, -1], frames[:, -1].to(legs.dtype))
+                                lengths[:, -1], frames[:, -1].to(legs.dtype))
         return rotations, root, joints, new_state
 
 
