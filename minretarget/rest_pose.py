@@ -42,6 +42,14 @@ class RestPoseWeights(NamedTuple):
     directions: np.ndarray   # (F, B*3) float32: features -> rest bone directions (unnormalised)
 
 
+def check_rest_pose(weights):
+    """RestPoseWeights with a finite (F, B*3) float32 C-contiguous map, or ValueError."""
+    if not isinstance(weights, RestPoseWeights):
+        raise ValueError(f"rest_pose must be RestPoseWeights, got {type(weights).__name__}")
+    return RestPoseWeights(as_float32_array(weights.directions, "rest_pose.directions",
+                                            (NUM_FEATURES, 3 * NUM_BONES)))
+
+
 def bone_lengths(joints):
     """(..., J, 3) float32 joints, metres -> (..., B) float32 bone lengths, metres."""
     joints = as_float32_array(joints, "joints", (..., NUM_JOINTS, 3))
@@ -69,6 +77,7 @@ def prior_reference(weights, target_tpose, source_lengths):
         (J, 3) float32: the target's T-pose with each bone turned by the predicted rest
         direction of the source's minus the target's, lengths kept, root in place.
     """
+    weights = check_rest_pose(weights)
     tpose = as_float32_array(target_tpose, "target_tpose", (NUM_JOINTS, 3))
     lengths = as_float32_array(source_lengths, "source_lengths", (NUM_BONES,))
     if not (lengths > 0).all():

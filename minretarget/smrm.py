@@ -36,7 +36,7 @@ from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
 from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401
-from .rest_pose import NUM_BONES, RestPoseWeights, _prior_reference_kernel
+from .rest_pose import NUM_BONES, _prior_reference_kernel, check_rest_pose
 from .smoothing import _parameters, _smooth_kernel, check_smoothing
 from .validation import as_float32_array
 
@@ -141,9 +141,8 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     if denoiser is not None and not isinstance(denoiser, DenoiserWeights):
         raise ValueError(f"denoiser must be DenoiserWeights or None, got "
                          f"{type(denoiser).__name__}")
-    if rest_pose is not None and not isinstance(rest_pose, RestPoseWeights):
-        raise ValueError(f"rest_pose must be RestPoseWeights or None, got "
-                         f"{type(rest_pose).__name__}")
+    if rest_pose is not None:
+        rest_pose = check_rest_pose(rest_pose)
     if state is None:
         state = initial_state(weights, source_joints, denoiser)
     if state.denoise_hidden.shape != hidden_shape(denoiser):

@@ -16,8 +16,8 @@ torch = pytest.importorskip("torch")
 
 from reference_models import TINY_CONFIG, random_reference  # noqa: E402
 from training.export import runtime_weights  # noqa: E402
-from training.rest_pose import (bone_directions, fit_rest_pose, main,  # noqa: E402
-                                torch_prior_reference)
+from training.models.rest_pose import torch_prior_reference  # noqa: E402
+from training.rest_pose import bone_directions, fit_rest_pose, main  # noqa: E402
 
 # A T-pose skeleton to start from: joints on a plausible body, symmetric in x.
 _OFFSETS = {1: (0.09, -0.08, 0), 2: (-0.09, -0.08, 0), 3: (0, 0.11, 0), 4: (0.01, -0.38, 0),
@@ -78,6 +78,18 @@ def test_prior_reference_refuses_bad_lengths():
         prior_reference(model, tpose, lengths)
     with pytest.raises(ValueError, match="source_lengths"):
         prior_reference(model, tpose, lengths[:5])
+
+
+def test_a_bad_model_is_refused_by_name():
+    tpose = tpose_skeleton()
+    with pytest.raises(ValueError, match=r"rest_pose.directions must have shape \(23, 63\)"):
+        prior_reference(RestPoseWeights(np.zeros((22, 63))), tpose, bone_lengths(tpose))
+    bad = random_model().directions.copy()
+    bad[3, 7] = np.nan
+    with pytest.raises(ValueError, match="rest_pose.directions"):
+        retarget_step(None, None, tpose, tpose, rest_pose=RestPoseWeights(bad))
+    with pytest.raises(ValueError, match="rest_pose must be RestPoseWeights, got ndarray"):
+        prior_reference(bad, tpose, bone_lengths(tpose))
 
 
 def test_torch_twin_matches_the_kernel_batched():

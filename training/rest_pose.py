@@ -1,18 +1,20 @@
-"""Fit the rest-pose model (minretarget.rest_pose) on anny bodies, and its torch twin.
+"""Fit the rest-pose model (minretarget.rest_pose) on anny bodies (its torch twin:
+training.models.rest_pose).
 
 The map from a body's features (its bone lengths) to its rest bone directions is linear, fitted
 by ridge regression on the T-poses of ``bodies`` training bodies (their seeds, as
 ``training.data.bodies.sampled_body_seeds`` draws them; no validation or test body). The
 lengths the runtime measures are SKR's, off by 5 to 12 % per bone, so each body enters
 ``copies`` times with its bone lengths scaled by 1 + ``noise`` x N(0, 1): a fit on exact
-lengths reads that noise as shape and turns bones by degrees (validation PA-MPJPE 0.0241
-against the plain prior's 0.0226), one on noisy lengths keeps what they can predict.
+lengths reads that noise as shape (the analytic retargeting of the validation trials' runtime
+skeletons then scores PA-MPJPE 0.0241 against the plain prior's 0.0226; with 8 % noise
+0.0222), one on noisy lengths keeps what they can predict.
 
     python -m training.rest_pose --init minretarget/data/default_weights.npz \\
         --out runs/rest_pose/weights.npz [--bodies 2000] [--noise 0.08]
 
 writes the weights of ``--init`` with the model added (``config.rest_pose``), provenance in
-its metadata. Building 2,000 bodies with anny takes about 2 minutes on this machine.
+its metadata, in about 90 s on this machine (anny builds the 2,000 bodies).
 """
 import argparse
 import dataclasses
@@ -23,9 +25,9 @@ import numpy as np
 import torch
 
 from minretarget.conventions import PARENTS
-from minretarget.rest_pose import (NUM_BONES, RestPoseWeights, _MIRROR_BONE, bone_lengths,
-                                   rest_pose_features)
+from minretarget.rest_pose import RestPoseWeights, bone_lengths, rest_pose_features
 from minretarget.weights import load_weights, save_weights
+from training.train import current_commit
 
 RIDGE = 1e-4
 
@@ -62,45 +64,6 @@ def fit_rest_pose(tpose_joints, noise=0.08, copies=20, ridge=RIDGE, seed=0):
     return RestPoseWeights(np.ascontiguousarray(solution, dtype=np.float32))
 
 
-# ----------------------------------------------------------------------------- torch twin
-
-def torch_bone_lengths(joints):
-    """(..., J, 3) tensor -> (..., B) bone lengths."""
-    return (joints[..., 1:, :] - joints[..., list(PARENTS[1:]), :]).norm(dim=-1)
-
-
-def torch_prior_reference(directions, target_tpose, source_lengths):
-    """Torch twin of ``minretarget.rest_pose.prior_reference``, batched.
-
-    Args:
-        directions: (F, B*3) tensor, RestPoseWeights.directions.
-        target_tpose: (..., J, 3) target T-pose joints.
-        source_lengths: (..., B) source bone lengths (broadcast against the T-pose's batch).
-    Returns:
-        (..., J, 3) the reference skeleton.
-    """
-    def predicted(lengths):
-        symmetric = 0.5 * (lengths + lengths[..., list(_MIRROR_BONE)])
-        total = symmetric.sum(-1, keepdim=True).clamp_min(1e-6)
-        features = torch.cat([torch.ones_like(total), symmetric / total, total], -1)
-        flat = features @ directions
-        return torch.nn.functional.normalize(flat.unflatten(-1, (NUM_BONES, 3)), dim=-1,
-                                             eps=1e-12)
-
-    bones = target_tpose[..., 1:, :] - target_tpose[..., list(PARENTS[1:]), :]
-    target_lengths = bones.norm(dim=-1, keepdim=True)
-    source_lengths, target_lengths_ = torch.broadcast_tensors(source_lengths,
-                                                              target_lengths[..., 0])
-    turned = (bones / target_lengths.clamp_min(1e-12) + predicted(source_lengths)
-              - predicted(target_lengths_))
-    turned = turned / turned.norm(dim=-1, keepdim=True).clamp_min(1e-12) * target_lengths
-    root = target_tpose[..., :1, :].expand(*turned.shape[:-2], 1, 3)
-    joints = [root[..., 0, :]]
-    for b in range(NUM_BONES):
-        joints.append(joints[PARENTS[b + 1]] + turned[..., b, :])
-    return torch.stack(joints, dim=-2)
-
-
 # ----------------------------------------------------------------------------- command line
 
 def training_tpose_joints(count):
@@ -135,7 +98,8 @@ def main(argv=None):
     model = fit_rest_pose(training_tpose_joints(args.bodies), args.noise, seed=args.seed)
     metadata = dict(weights.metadata, rest_pose={
         "bodies": args.bodies, "noise": args.noise, "copies": 20, "ridge": RIDGE,
-        "seed": args.seed, "fitted_on": "sampled training bodies (training.data.bodies)"})
+        "seed": args.seed, "fitted_on": "sampled training bodies (training.data.bodies)",
+        "commit": current_commit()})
     weights = weights._replace(config=dataclasses.replace(weights.config, rest_pose=True),
                                rest_pose=model, metadata=metadata)
     args.out.parent.mkdir(parents=True, exist_ok=True)

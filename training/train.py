@@ -574,14 +574,19 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
 
 # ----------------------------------------------------------------------------- command line
 
+def current_commit():
+    """The repository's HEAD commit, or "unknown" outside a git checkout."""
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
 def provenance(recipe, data_dir, init=None):
     """What made these weights: recipe, data manifest summary, commit, and the provenance of
     the weights training started from, if any."""
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+    commit = current_commit()
     manifest_path = Path(data_dir) / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
     out = {"recipe": json.loads(recipe.to_json()), "commit": commit,

@@ -30,7 +30,7 @@ from minretarget.rest_pose import NUM_BONES, NUM_FEATURES
 from minretarget.smrm import LEG_BONES
 from training.analytic import analytic_rotations
 from training.kinematics import forward_kinematics, normalize_quaternions, quaternion_multiply
-from training.rest_pose import torch_bone_lengths, torch_prior_reference
+from training.models.rest_pose import torch_bone_lengths, torch_prior_reference
 
 
 class MotionState(NamedTuple):
