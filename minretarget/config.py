@@ -52,6 +52,9 @@ class ModelConfig:
         for flag in ("smrm_analytic_prior", "rest_pose"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
+        if self.rest_pose and not self.smrm_analytic_prior:
+            raise ValueError("rest_pose needs smrm_analytic_prior: the rest-pose model moves "
+                             "the analytic prior, which SMRM without it does not have")
         if len(self.skr_point_widths) != 3 or len(self.skr_head_widths) != 2:
             raise ValueError("skr_point_widths needs 3 widths and skr_head_widths 2, got "
                              f"{self.skr_point_widths} and {self.skr_head_widths}")

@@ -30,13 +30,14 @@ from ._jit import kernel
 from .analytic import _analytic_frame
 from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
-from .conventions import NUM_JOINTS, PARENTS
+from .conventions import NUM_JOINTS
 from .denoise import DenoiserWeights, _denoise_mirror_averaged_kernel, hidden_shape
 from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
 from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401
-from .rest_pose import NUM_BONES, _prior_reference_kernel, check_rest_pose
+from .rest_pose import (NUM_BONES, _bone_lengths_kernel, _prior_reference_kernel,
+                        check_rest_pose)
 from .smoothing import _parameters, _smooth_kernel, check_smoothing
 from .validation import as_float32_array
 
@@ -175,7 +176,6 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
 # The bones (rest_pose.bone_lengths' order) of _leg_length's chains, and no rest-pose model.
 LEG_BONES = (3, 4, 6, 7)
 _NO_REST_POSE = np.zeros((0, 3 * NUM_BONES), dtype=np.float32)
-_PARENTS = np.asarray(PARENTS, dtype=np.int64)
 
 
 @kernel
@@ -197,10 +197,9 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions,
     Returns rotations (J, 4) and root (3,)."""
     j = source_joints.shape[0]
     root = source_joints[0]
-    for b in range(j - 1):
-        bone = source_joints[b + 1] - source_joints[_PARENTS[b + 1]]
-        length = np.sqrt(bone[0] ** 2 + bone[1] ** 2 + bone[2] ** 2)
-        source_bone_lengths[b] += (length - source_bone_lengths[b]) / np.float32(frames_seen + 1)
+    lengths = np.empty_like(source_bone_lengths)
+    _bone_lengths_kernel(source_joints, lengths)
+    source_bone_lengths += (lengths - source_bone_lengths) / np.float32(frames_seen + 1)
     # 1-2. heading, and the features in the heading frame (turned by -heading)
     features, sin, cos = heading_features(source_joints, previous_root)
     # 3. encoder, then decoder over [encoded, T-pose relative to its root]

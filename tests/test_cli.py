@@ -1,6 +1,7 @@
 """The command line end to end on tiny inputs (tests/golden/tiny_weights.npz), every output
 read back, units and axes, previews, the demo, and the messages for bad input or a missing
 ``cli`` extra."""
+import dataclasses
 import json
 import os
 import subprocess
@@ -18,10 +19,12 @@ from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_NAMES, NUM_JOINTS
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
+from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from minretarget.skeletons import depth_first_order
 from minretarget.sources import SAMPLE, load_sample
 from minretarget.units import (from_canonical, make_space, rotations_to_canonical,
                                to_canonical)
+from minretarget.weights import load_weights, save_weights
 from test_glb import node_world_matrices
 
 trimesh = pytest.importorskip("trimesh")
@@ -122,15 +125,32 @@ PIPELINE_OPTIONS = [
 def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, setting):
     """Each option changes the result as the API's setting does. The feet are held by an
     eager lock here: the tiny model's random toes would never plant with the defaults."""
+    option_matches_the_api(inputs, monkeypatch, option, setting, WEIGHTS)
+
+
+def test_no_rest_pose_matches_the_python_api(inputs, monkeypatch, tmp_path):
+    """--no-rest-pose, with tiny weights given the analytic prior and a random rest-pose
+    model (the golden tiny weights have neither)."""
+    tiny = load_weights(WEIGHTS)
+    directions = np.random.default_rng(0).normal(size=(NUM_FEATURES, 3 * NUM_BONES))
+    save_weights(tmp_path / "rest.npz", tiny._replace(
+        config=dataclasses.replace(tiny.config, smrm_analytic_prior=True, rest_pose=True),
+        smrm=tiny.smrm._replace(analytic_prior=True),
+        rest_pose=RestPoseWeights(directions.astype(np.float32))))
+    option_matches_the_api(inputs, monkeypatch, ("--no-rest-pose",), {"rest_pose": False},
+                           str(tmp_path / "rest.npz"))
+
+
+def option_matches_the_api(inputs, monkeypatch, option, setting, weights):
     monkeypatch.setattr(cli, "FootLock", lambda: EAGER)
     results = {}
     for options in ((), option):
         out = inputs["dir"] / f"out{''.join(options)}"
         assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
-                   "--out", out, "--format", "npz", "--weights", WEIGHTS, "--overwrite",
+                   "--out", out, "--format", "npz", "--weights", weights, "--overwrite",
                    *options) == 0
         results[options] = load(out / "result.npz")
-    retargeter = Retargeter.from_weights(WEIGHTS, **{"foot_lock": EAGER, **setting})
+    retargeter = Retargeter.from_weights(weights, **{"foot_lock": EAGER, **setting})
     retargeter.set_target(inputs["target"], inputs["faces"])
     expected = list(retargeter.run(inputs["frames"]))
     for field in ("rotations", "vertices"):

@@ -7,7 +7,7 @@ import pytest
 
 import twins
 from minretarget.conventions import MIRROR, NUM_JOINTS, PARENTS
-from minretarget.kinematics import forward_kinematics
+from minretarget.kinematics import forward_kinematics, matrix_to_quaternion
 from minretarget.rest_pose import (NUM_BONES, NUM_FEATURES, RestPoseWeights, bone_lengths,
                                    prior_reference, rest_pose_features)
 from minretarget.smrm import check_state, initial_state, retarget_step
@@ -57,8 +57,12 @@ def test_same_proportions_leave_the_target_tpose_as_it_is():
     model, tpose = random_model(2), tpose_skeleton()
     lengths = bone_lengths(tpose)
     np.testing.assert_allclose(prior_reference(model, tpose, lengths), tpose, atol=1e-6)
-    swapped = lengths[np.asarray(MIRROR[1:]) - 1]            # left and right exchanged
-    np.testing.assert_allclose(prior_reference(model, tpose, swapped), tpose, atol=1e-6)
+    # A source with other, uneven lengths, and the same with left and right exchanged.
+    uneven = lengths * np.linspace(0.8, 1.2, NUM_BONES, dtype=np.float32)
+    swapped = uneven[np.asarray(MIRROR[1:]) - 1]
+    assert np.abs(swapped - uneven).max() > 0.005
+    np.testing.assert_allclose(prior_reference(model, tpose, swapped),
+                               prior_reference(model, tpose, uneven), atol=1e-6)
 
 
 def test_reference_keeps_the_target_bone_lengths_and_root_and_turns_its_bones():
@@ -235,15 +239,38 @@ def test_rest_pose_brings_a_clean_source_closer_to_the_retargeting_truth(prior_w
     reference = prior_reference(prior_weights.rest_pose, target_rest, bone_lengths(source))
 
     def posed(reference_skeleton):
-        rotations = twins.analytic_rotations(source[None], reference_skeleton)
-        matrices = np.asarray(rotations, np.float64)
-        from minretarget.kinematics import matrix_to_quaternion
+        matrices = twins.analytic_rotations(source[None], reference_skeleton)
         quaternions = matrix_to_quaternion(matrices.astype(np.float32))
         return forward_kinematics(quaternions, root, target_rest)[0][0]
 
     plain_error = np.linalg.norm(posed(target_rest) - truth, axis=-1).mean()
     rest_error = np.linalg.norm(posed(reference) - truth, axis=-1).mean()
     assert rest_error < 0.5 * plain_error
+
+
+def test_rest_pose_needs_the_analytic_prior_and_is_recorded_only_when_on(prior_weights):
+    from minretarget.checkpoint import run_record
+    from minretarget.config import ModelConfig
+    from minretarget.units import make_space
+    with pytest.raises(ValueError, match="rest_pose needs smrm_analytic_prior"):
+        ModelConfig(rest_pose=True)
+
+    class Source:
+        path, kind, count, fps = "frames.npy", "points", 3, 30.0
+    records = [run_record(Source, {"points": tpose_skeleton()}, weights, ["npz"],
+                          make_space("m", "y"), 2048, 0, rest_pose=on)
+               for weights, on in ((prior_weights, True), (prior_weights, False),
+                                   (prior_weights._replace(rest_pose=None), True))]
+    assert [record.get("rest_pose") for record in records] == [True, None, None]
+
+
+def test_importing_weights_refuses_a_rest_pose_mismatch(prior_weights):
+    from training.export import import_weights
+    config = dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True)
+    model = random_reference(config, 4)
+    with pytest.raises(ValueError, match="rest_pose=False, the weights have rest-pose model"):
+        import_weights(prior_weights, model.skr, model.smrm, model.skin, model.refine,
+                       model.denoise)
 
 
 def test_state_refuses_bad_bone_lengths(prior_weights):

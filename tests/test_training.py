@@ -1,4 +1,5 @@
 """The training loop end to end on tiny synthetic datasets: every stage, export, resume."""
+import dataclasses
 import json
 
 import numpy as np
@@ -8,6 +9,7 @@ torch = pytest.importorskip("torch")
 
 from minretarget import Retargeter  # noqa: E402
 from minretarget.conventions import NUM_JOINTS, PARENTS  # noqa: E402
+from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights  # noqa: E402
 from minretarget.weights import flatten_weights, load_weights, save_weights  # noqa: E402
 from training import kinematics  # noqa: E402
 from training.losses import rotation_distance, skin_loss  # noqa: E402
@@ -159,6 +161,39 @@ def test_analytic_prior_fine_tunes_from_weights_without_it(run, tmp_path):
           "--set", "model.smrm_analytic_prior=true", "--data", str(run),
           "--out", str(tmp_path / "prior"), "--threads", "1"])
     assert load_weights(tmp_path / "prior" / "weights.npz").config.smrm_analytic_prior
+
+
+def test_the_rest_pose_model_is_carried_through_training(run, tmp_path):
+    """smrm --init <file with a rest-pose model>, with a recipe whose model has none: SMRM
+    trains with that model in its prior and the export keeps it, array for array."""
+    whole = load_weights(run / "run" / "weights.npz")
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(NUM_FEATURES, 3 * NUM_BONES)).astype(np.float32)
+    with_rest = whole._replace(config=dataclasses.replace(whole.config, rest_pose=True,
+                                                          smrm_analytic_prior=True),
+                               smrm=whole.smrm._replace(analytic_prior=True),
+                               rest_pose=RestPoseWeights(directions))
+    save_weights(tmp_path / "rest.npz", with_rest)
+    recipe = load_recipe(run / "tiny.json", ["model.smrm_analytic_prior=true"])
+    assert not recipe.model.rest_pose
+    main(["smrm", "--init", str(tmp_path / "rest.npz"), "--recipe", str(run / "tiny.json"),
+          "--set", "model.smrm_analytic_prior=true", "--data", str(run),
+          "--out", str(tmp_path / "tuned"), "--threads", "1"])
+    tuned = load_weights(tmp_path / "tuned" / "weights.npz")
+    assert tuned.config.rest_pose
+    np.testing.assert_array_equal(tuned.rest_pose.directions, directions)
+    assert json.loads((tmp_path / "tuned" / "recipe.json").read_text())["model"]["rest_pose"]
+    # SMRM from scratch keeps it too; a recipe without the analytic prior leaves it out.
+    main(["smrm", "--init", str(tmp_path / "rest.npz"), "--recipe", str(run / "tiny.json"),
+          "--set", "model.smrm_analytic_prior=true", "--scratch", "smrm", "--data", str(run),
+          "--out", str(tmp_path / "scratch"), "--threads", "1"])
+    scratch = load_weights(tmp_path / "scratch" / "weights.npz")
+    np.testing.assert_array_equal(scratch.rest_pose.directions, directions)
+    main(["smrm", "--init", str(tmp_path / "rest.npz"), "--recipe", str(run / "tiny.json"),
+          "--scratch", "smrm", "--data", str(run), "--out", str(tmp_path / "plain"),
+          "--threads", "1"])
+    plain = load_weights(tmp_path / "plain" / "weights.npz")
+    assert not plain.config.rest_pose and plain.rest_pose is None
 
 
 def weights_without(run, tmp_path, part):

@@ -174,7 +174,11 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     _import_gru(smrm.decoder, weights.smrm.decoder)
     _set_dense(smrm.rotation_head, weights.smrm.rotation_head)
     _set_dense(smrm.root_head, weights.smrm.root_head)
-    if smrm.config.rest_pose and weights.rest_pose is not None:
+    if smrm.config.rest_pose != (weights.rest_pose is not None):
+        raise ValueError(f"the modules' config has rest_pose={smrm.config.rest_pose}, the "
+                         f"weights {'have' if weights.rest_pose is not None else 'have no'} "
+                         "rest-pose model (training.rest_pose fits one)")
+    if weights.rest_pose is not None:
         with torch.no_grad():
             smrm.rest_directions.copy_(torch.from_numpy(weights.rest_pose.directions))
     _import_linears(skin.hidden, weights.skin.hidden)

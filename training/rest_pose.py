@@ -30,6 +30,7 @@ from minretarget.weights import load_weights, save_weights
 from training.train import current_commit
 
 RIDGE = 1e-4
+COPIES = 20         # noisy copies of each body
 
 
 def bone_directions(joints):
@@ -39,7 +40,7 @@ def bone_directions(joints):
     return bones / np.linalg.norm(bones, axis=-1, keepdims=True)
 
 
-def fit_rest_pose(tpose_joints, noise=0.08, copies=20, ridge=RIDGE, seed=0):
+def fit_rest_pose(tpose_joints, noise=0.08, copies=COPIES, ridge=RIDGE, seed=0):
     """Ridge regression of rest bone directions on features of noisy bone lengths.
 
     Args:
@@ -97,7 +98,7 @@ def main(argv=None):
         parser.error(f"{args.init}: its SMRM has no analytic prior for the rest poses to move")
     model = fit_rest_pose(training_tpose_joints(args.bodies), args.noise, seed=args.seed)
     metadata = dict(weights.metadata, rest_pose={
-        "bodies": args.bodies, "noise": args.noise, "copies": 20, "ridge": RIDGE,
+        "bodies": args.bodies, "noise": args.noise, "copies": COPIES, "ridge": RIDGE,
         "seed": args.seed, "fitted_on": "sampled training bodies (training.data.bodies)",
         "commit": current_commit()})
     weights = weights._replace(config=dataclasses.replace(weights.config, rest_pose=True),

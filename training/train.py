@@ -261,6 +261,9 @@ def initial_models(recipe, init=None, scratch=()):
                              "rotations (smrm_analytic_prior); a recipe without the prior would "
                              "read them as whole rotations: set model.smrm_analytic_prior")
         models.update({name: loaded[name] for name in loaded if name not in scratch})
+        if init.rest_pose is not None:     # fitted, not trained: a fresh SMRM gets it too
+            with torch.no_grad():
+                models["smrm"].rest_directions.copy_(torch.from_numpy(init.rest_pose.directions))
     return models
 
 
@@ -635,8 +638,14 @@ def main(argv=None):
     recipe = load_recipe(args.recipe, args.set)
     init = load_weights(args.init) if args.init else None
     if init is not None and init.config.rest_pose:     # fitted, not trained: carried along
-        recipe = dataclasses.replace(recipe, model=dataclasses.replace(recipe.model,
-                                                                       rest_pose=True))
+        if recipe.model.smrm_analytic_prior:
+            recipe = dataclasses.replace(recipe, model=dataclasses.replace(recipe.model,
+                                                                           rest_pose=True))
+        else:
+            print("note: the --init weights' rest-pose model is left out: this recipe's SMRM "
+                  "has no analytic prior for it to move")
+            init = init._replace(config=dataclasses.replace(init.config, rest_pose=False),
+                                 rest_pose=None)
     run_dir = Path(args.out)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "recipe.json").write_text(recipe.to_json())
