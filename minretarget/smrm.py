@@ -173,18 +173,18 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     return rotations, root, new_state
 
 
-# The bones (rest_pose.bone_lengths' order) of _leg_length's chains, and no rest-pose model.
-LEG_BONES = (3, 4, 6, 7)
+# The bones (rest_pose.bone_lengths' order) of the hip-knee-ankle chains, left then right
+# (``kinematics.leg_length``'s), and no rest-pose model.
+LEG_BONES = (3, 6, 4, 7)
 _NO_REST_POSE = np.zeros((0, 3 * NUM_BONES), dtype=np.float32)
 
 
 @kernel
-def _leg_length(joints):
-    """Mean hip-knee-ankle chain length of (J, 3) joints (``kinematics.leg_length``)."""
+def _leg_from_bones(lengths):
+    """Mean hip-knee-ankle chain length from (B,) bone lengths (``kinematics.leg_length``)."""
     total = np.float32(0.0)
-    for hip, knee, ankle in ((1, 4, 7), (2, 5, 8)):
-        for a, b in ((hip, knee), (knee, ankle)):
-            total += np.sqrt(np.sum((joints[b] - joints[a]) ** 2))
+    for b in LEG_BONES:
+        total += lengths[b]
     return total / np.float32(2.0)
 
 
@@ -232,11 +232,10 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions,
             hw * y + hy * w, hw * z - hy * x
     # ... and the root: the source root scaled to the target's size, plus the turned offset
     # (a degenerate source whose legs have no length must not divide by zero)
-    source_leg = np.float32(0.0)
-    for b in LEG_BONES:
-        source_leg += source_bone_lengths[b]
-    source_leg /= np.float32(2.0)
-    scale = np.float32(_leg_length(target_tpose) / max(source_leg, np.float32(1e-6)))
+    target_lengths = np.empty_like(source_bone_lengths)
+    _bone_lengths_kernel(target_tpose, target_lengths)
+    scale = np.float32(_leg_from_bones(target_lengths)
+                       / max(_leg_from_bones(source_bone_lengths), np.float32(1e-6)))
     out_root = np.empty(3, dtype=np.float32)
     out_root[0], out_root[1], out_root[2] = turn_about_up(offset[0], offset[1], offset[2],
                                                            sin, cos)

@@ -1,9 +1,11 @@
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from minretarget.denoise import denoise_joints, hidden_shape
+from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from minretarget.weights import load_weights
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -34,3 +36,13 @@ def denoised_stream(weights, frames):
         out.append(denoised)
         previous_root = joints[0]
     return np.stack(out)
+
+
+def with_rest_pose(weights, seed=0):
+    """``weights`` given the analytic prior and a random rest-pose model (the tiny test
+    weights have neither)."""
+    directions = np.random.default_rng(seed).normal(size=(NUM_FEATURES, 3 * NUM_BONES))
+    return weights._replace(
+        config=dataclasses.replace(weights.config, smrm_analytic_prior=True, rest_pose=True),
+        smrm=weights.smrm._replace(analytic_prior=True),
+        rest_pose=RestPoseWeights(directions.astype(np.float32)))

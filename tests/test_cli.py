@@ -1,7 +1,6 @@
 """The command line end to end on tiny inputs (tests/golden/tiny_weights.npz), every output
 read back, units and axes, previews, the demo, and the messages for bad input or a missing
 ``cli`` extra."""
-import dataclasses
 import json
 import os
 import subprocess
@@ -11,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import GOLDEN
+from conftest import GOLDEN, with_rest_pose
 from minretarget import Retargeter
 from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
@@ -19,7 +18,6 @@ from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_NAMES, NUM_JOINTS
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
-from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from minretarget.skeletons import depth_first_order
 from minretarget.sources import SAMPLE, load_sample
 from minretarget.units import (from_canonical, make_space, rotations_to_canonical,
@@ -131,12 +129,7 @@ def test_pipeline_options_match_the_python_api(inputs, monkeypatch, option, sett
 def test_no_rest_pose_matches_the_python_api(inputs, monkeypatch, tmp_path):
     """--no-rest-pose, with tiny weights given the analytic prior and a random rest-pose
     model (the golden tiny weights have neither)."""
-    tiny = load_weights(WEIGHTS)
-    directions = np.random.default_rng(0).normal(size=(NUM_FEATURES, 3 * NUM_BONES))
-    save_weights(tmp_path / "rest.npz", tiny._replace(
-        config=dataclasses.replace(tiny.config, smrm_analytic_prior=True, rest_pose=True),
-        smrm=tiny.smrm._replace(analytic_prior=True),
-        rest_pose=RestPoseWeights(directions.astype(np.float32))))
+    save_weights(tmp_path / "rest.npz", with_rest_pose(load_weights(WEIGHTS)))
     option_matches_the_api(inputs, monkeypatch, ("--no-rest-pose",), {"rest_pose": False},
                            str(tmp_path / "rest.npz"))
 

@@ -6,16 +6,20 @@ import numpy as np
 import pytest
 
 import twins
+from minretarget.checkpoint import run_record
+from minretarget.config import ModelConfig
 from minretarget.conventions import MIRROR, NUM_JOINTS, PARENTS
 from minretarget.kinematics import forward_kinematics, matrix_to_quaternion
 from minretarget.rest_pose import (NUM_BONES, NUM_FEATURES, RestPoseWeights, bone_lengths,
                                    prior_reference, rest_pose_features)
 from minretarget.smrm import check_state, initial_state, retarget_step
+from minretarget.units import make_space
+from minretarget.weights import load_weights, save_weights
 
 torch = pytest.importorskip("torch")
 
 from reference_models import TINY_CONFIG, random_reference  # noqa: E402
-from training.export import runtime_weights  # noqa: E402
+from training.export import import_weights, runtime_weights  # noqa: E402
 from training.models.rest_pose import torch_prior_reference  # noqa: E402
 from training.rest_pose import bone_directions, fit_rest_pose, main  # noqa: E402
 
@@ -157,13 +161,11 @@ def test_fit_recovers_rest_directions_and_noise_shrinks_the_fit():
 
 
 def test_fit_command_adds_the_model_to_a_weights_file(tmp_path, monkeypatch):
-    import training.rest_pose as rest_pose
     model = random_reference(dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True), 1)
-    from minretarget.weights import load_weights, save_weights
     save_weights(tmp_path / "in.npz", runtime_weights(model.skr, model.smrm, model.skin,
                                                       {"recipe": "tiny"}, model.refine,
                                                       model.denoise))
-    monkeypatch.setattr(rest_pose, "training_tpose_joints",
+    monkeypatch.setattr("training.rest_pose.training_tpose_joints",
                         lambda count: synthetic_bodies(count, seed=8))
     main(["--init", str(tmp_path / "in.npz"), "--out", str(tmp_path / "out.npz"),
           "--bodies", "40", "--noise", "0.05"])
@@ -178,7 +180,6 @@ def test_fit_command_adds_the_model_to_a_weights_file(tmp_path, monkeypatch):
 
 def test_fit_command_refuses_weights_without_the_analytic_prior(tmp_path, capsys):
     model = random_reference(TINY_CONFIG, 1)
-    from minretarget.weights import save_weights
     save_weights(tmp_path / "in.npz", runtime_weights(model.skr, model.smrm, model.skin, {},
                                                       model.refine, model.denoise))
     with pytest.raises(SystemExit):
@@ -249,9 +250,6 @@ def test_rest_pose_brings_a_clean_source_closer_to_the_retargeting_truth(prior_w
 
 
 def test_rest_pose_needs_the_analytic_prior_and_is_recorded_only_when_on(prior_weights):
-    from minretarget.checkpoint import run_record
-    from minretarget.config import ModelConfig
-    from minretarget.units import make_space
     with pytest.raises(ValueError, match="rest_pose needs smrm_analytic_prior"):
         ModelConfig(rest_pose=True)
 
@@ -265,7 +263,6 @@ def test_rest_pose_needs_the_analytic_prior_and_is_recorded_only_when_on(prior_w
 
 
 def test_importing_weights_refuses_a_rest_pose_mismatch(prior_weights):
-    from training.export import import_weights
     config = dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True)
     model = random_reference(config, 4)
     with pytest.raises(ValueError, match="rest_pose=False, the weights have rest-pose model"):

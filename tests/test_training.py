@@ -1,5 +1,4 @@
 """The training loop end to end on tiny synthetic datasets: every stage, export, resume."""
-import dataclasses
 import json
 
 import numpy as np
@@ -7,9 +6,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from conftest import with_rest_pose  # noqa: E402
 from minretarget import Retargeter  # noqa: E402
 from minretarget.conventions import NUM_JOINTS, PARENTS  # noqa: E402
-from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights  # noqa: E402
 from minretarget.weights import flatten_weights, load_weights, save_weights  # noqa: E402
 from training import kinematics  # noqa: E402
 from training.losses import rotation_distance, skin_loss  # noqa: E402
@@ -166,13 +165,8 @@ def test_analytic_prior_fine_tunes_from_weights_without_it(run, tmp_path):
 def test_the_rest_pose_model_is_carried_through_training(run, tmp_path):
     """smrm --init <file with a rest-pose model>, with a recipe whose model has none: SMRM
     trains with that model in its prior and the export keeps it, array for array."""
-    whole = load_weights(run / "run" / "weights.npz")
-    rng = np.random.default_rng(0)
-    directions = rng.normal(size=(NUM_FEATURES, 3 * NUM_BONES)).astype(np.float32)
-    with_rest = whole._replace(config=dataclasses.replace(whole.config, rest_pose=True,
-                                                          smrm_analytic_prior=True),
-                               smrm=whole.smrm._replace(analytic_prior=True),
-                               rest_pose=RestPoseWeights(directions))
+    with_rest = with_rest_pose(load_weights(run / "run" / "weights.npz"))
+    directions = with_rest.rest_pose.directions
     save_weights(tmp_path / "rest.npz", with_rest)
     recipe = load_recipe(run / "tiny.json", ["model.smrm_analytic_prior=true"])
     assert not recipe.model.rest_pose
