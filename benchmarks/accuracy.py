@@ -11,17 +11,21 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
                          (minretarget.refine), smoothed over time (minretarget.smoothing)
                          and denoised (minretarget.denoise) before SMRM, whose analytic
                          prior allows for the two bodies' rest poses (minretarget.rest_pose),
-                         feet held on their contacts after it (minretarget.contacts)
+                         feet held on their contacts after it (minretarget.contacts); a
+                         skeleton facing far from the one tracked is read again from the
+                         cloud half turned (minretarget.facing)
     model, no refiner    the same without the joint refiner (source and target skeletons)
     model, no denoiser   the same as the model without the skeleton denoiser
     model, no foot lock  the same as the model without the foot contacts
     model, no rest pose  the same as the model with SMRM's plain analytic prior (target bones
                          turned onto the source bones, no rest-pose model)
+    model, no facing check  the same as the model with every SKR reading as it comes
     model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
                          averaged with those of each cloud's mirror image
     model, paper pipeline  the paper's: SKR once on the target T-pose (not mirror-averaged),
-                         SKR's source joints as they come (no refiner, no smoothing, no
-                         denoiser), SMRM's plain prior, its rotations as they come
+                         SKR's source joints as they come (no refiner, no facing check, no
+                         smoothing, no denoiser), SMRM's plain prior, its rotations as they
+                         come
     analytic             the model's (smoothed, denoised) source bones, each target bone
                          rotated onto its source bone (minretarget.analytic), FK, LBS with
                          SKIN weights: no SMRM
@@ -71,7 +75,7 @@ from minretarget.weights import load_weights
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
 ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock",
-        "model, no rest pose", "model, mirrored source",
+        "model, no rest pose", "model, no facing check", "model, mirrored source",
         "model, paper pipeline", "analytic", "analytic, mirrored source", "oracle source",
         "oracle target", "oracle both")
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
@@ -97,10 +101,13 @@ def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
     return joints, linear_blend_skinning(points, skin_weights, transforms)
 
 
-def stream(retargeter, source_joints):
-    """Run SMRM, FK and LBS online over known source joints -> joints, vertices (T, ...)."""
+def stream(retargeter, source_joints, clouds=None):
+    """Run SMRM, FK and LBS online over known source joints (found in ``clouds``, if given:
+    the facing check reads those again) -> joints, vertices (T, ...)."""
     retargeter.reset()
-    return stacked([retargeter.step_skeleton(joints) for joints in source_joints])
+    clouds = [None] * len(source_joints) if clouds is None else clouds
+    return stacked([retargeter.step_skeleton(joints, cloud)
+                    for joints, cloud in zip(source_joints, clouds)])
 
 
 def stacked(frames):
@@ -121,12 +128,13 @@ def run_sequence(weights, sequence, wanted=ROWS):
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
     paper = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
-                       refine=False, denoise=False, rest_pose=False)
+                       refine=False, denoise=False, rest_pose=False, facing_check=False)
     paper.set_target(points)                         # its own rig: SKR once on the T-pose
     unrefined = Retargeter(weights, refine=False)
     unrefined.set_target(points)                     # its own rig: SKR's, not refined
     no_lock, no_denoiser = Retargeter(weights, foot_lock=None), Retargeter(weights, denoise=False)
     no_rest_pose = Retargeter(weights, rest_pose=False)
+    no_facing_check = Retargeter(weights, facing_check=False)
     raw = Retargeter(weights, smoothing=None, denoise=False)
     mirrored = Retargeter(weights, mirror_source=True)
     oracle_rig = Retargeter(weights)
@@ -134,13 +142,14 @@ def run_sequence(weights, sequence, wanted=ROWS):
     leashed = {row: Retargeter(weights, foot_lock=FootLock(max_offset=leash))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
-                                 (raw, rig), (mirrored, rig),
+                                 (no_facing_check, rig), (raw, rig), (mirrored, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
     start = time.perf_counter()
-    raw_joints = learned.skeleton(sequence["source_points"])           # SKR + refiner
-    frames = [learned.step_skeleton(joints) for joints in raw_joints]
+    clouds = sequence["source_points"]
+    raw_joints = learned.skeleton(clouds)                               # SKR + refiner
+    frames = [learned.step_skeleton(joints, cloud) for joints, cloud in zip(raw_joints, clouds)]
     seconds = time.perf_counter() - start
     model = stacked(frames)
     target = learned.target
@@ -158,18 +167,19 @@ def run_sequence(weights, sequence, wanted=ROWS):
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
     make = {"model": lambda: model,
-            "model, no refiner": lambda: stream(unrefined, skr_alone()),
-            "model, no denoiser": lambda: stream(no_denoiser, raw_joints),
-            "model, no foot lock": lambda: stream(no_lock, raw_joints),
-            "model, no rest pose": lambda: stream(no_rest_pose, raw_joints),
+            "model, no refiner": lambda: stream(unrefined, skr_alone(), clouds),
+            "model, no denoiser": lambda: stream(no_denoiser, raw_joints, clouds),
+            "model, no foot lock": lambda: stream(no_lock, raw_joints, clouds),
+            "model, no rest pose": lambda: stream(no_rest_pose, raw_joints, clouds),
+            "model, no facing check": lambda: stream(no_facing_check, raw_joints),
             "model, mirrored source": lambda: stacked(mirrored_frames()),
             "model, paper pipeline": lambda: stream(paper, skr_alone()),
             "analytic": lambda: analytic(frames),
             "analytic, mirrored source": lambda: analytic(mirrored_frames()),
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
-            "oracle target": lambda: stream(oracle_rig, raw_joints),
+            "oracle target": lambda: stream(oracle_rig, raw_joints, clouds),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),
-            **{row: functools.partial(stream, retargeter, raw_joints)
+            **{row: functools.partial(stream, retargeter, raw_joints, clouds)
                for row, retargeter in leashed.items()}}
     return {row: make[row]() for row in wanted}, seconds
 

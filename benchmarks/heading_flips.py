@@ -7,11 +7,12 @@ its skeleton then turns half round about the vertical between two frames, the le
 come out crossed, and the feet jump by tens of centimetres, which no smoothing or foot lock
 can hide. Per test sequence this counts the frames whose source skeleton faces more than 90
 degrees away from the ground truth's (heading as ``minretarget.heading``: the hips' and
-shoulders' left-right axis about +Y), as the runtime finds it before smoothing and denoising
-(SKR, then the joint refiner; ``Retargeter.skeleton``) and as SKR alone finds it, with the
-toes' mean distance from the truth's (both relative to the pelvis) in those frames and in the
-others, and gives the largest turn the ground truth makes between two frames (a body turning
-faster than 90 degrees a frame would spin at over 7 turns a second at 30 fps).
+shoulders' left-right axis about +Y): as the runtime reads it (SKR, then the joint refiner;
+``Retargeter.skeleton``), as SKR alone reads it, and as SMRM sees it in a stream (after the
+facing check, ``minretarget.facing``, the smoothing and the denoiser), with the check and
+without. With the toes' mean distance from the truth's (both relative to the pelvis) in those
+frames and in the others, and the largest turn the ground truth makes between two frames (a
+body turning faster than 90 degrees a frame would spin at over 7 turns a second at 30 fps).
 """
 import argparse
 import json
@@ -23,7 +24,7 @@ import numpy as np
 
 from minretarget.atomic import atomic_write
 from minretarget.conventions import JOINT_INDEX
-from minretarget.heading import heading_features
+from minretarget.heading import heading_angles, wrapped
 from minretarget.metrics import FOOT_JOINTS
 from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
@@ -33,17 +34,7 @@ from accuracy import load_sequence  # noqa: E402
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
 TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
-
-
-def headings(joints):
-    """(T, J, 3) skeletons -> (T,) headings about +Y, radians."""
-    turns = [heading_features(frame, frame[0])[1:] for frame in joints.astype(np.float32)]
-    return np.array([np.arctan2(sin, cos) for sin, cos in turns])
-
-
-def wrapped(angles):
-    """Angles into [-pi, pi)."""
-    return (angles + np.pi) % (2 * np.pi) - np.pi
+ROWS = ("SKR and refiner", "SKR alone", "SMRM's input", "SMRM's input, no facing check")
 
 
 def toe_errors(joints, truth):
@@ -53,16 +44,29 @@ def toe_errors(joints, truth):
     return np.linalg.norm(toes(joints) - toes(truth), axis=-1)
 
 
-def sequence_flips(retargeters, sequence):
-    """Per retargeter of ``retargeters`` ({name: Retargeter}): the frames of ``sequence``
-    whose skeleton faces the wrong way, and the sums of the toe errors (``toe_errors``) over
-    them and over the other frames; and the truth's largest turn between two frames."""
+def row_skeletons(weights, sequence):
+    """{row: (T, J, 3) source skeletons of ``sequence``} for the rows of ``ROWS``."""
+    clouds = sequence["source_points"]
+    readings = Retargeter(weights, warn=False).skeleton(clouds)
+    rows = {"SKR and refiner": readings,
+            "SKR alone": Retargeter(weights, warn=False, refine=False).skeleton(clouds)}
+    for row, check in ((ROWS[2], True), (ROWS[3], False)):
+        retargeter = Retargeter(weights, warn=False, facing_check=check)
+        retargeter.set_target(sequence["target_tpose_points"])   # SMRM's input is the same
+        rows[row] = np.stack([retargeter.step_skeleton(joints, cloud).source_joints
+                              for joints, cloud in zip(readings, clouds)])
+    return rows
+
+
+def sequence_flips(rows, sequence):
+    """Per row of ``rows`` ({name: (T, J, 3) skeletons of ``sequence``}): the frames whose
+    skeleton faces the wrong way, and the sums of the toe errors (``toe_errors``) over them
+    and over the other frames; and the truth's largest turn between two frames."""
     truth_joints = sequence["source_joints"]
-    truth = headings(truth_joints)
+    truth = heading_angles(truth_joints)
     found = {}
-    for name, retargeter in retargeters.items():
-        joints = retargeter.skeleton(sequence["source_points"])
-        flipped = np.abs(wrapped(headings(joints) - truth)) > FLIP
+    for name, joints in rows.items():
+        flipped = np.abs(wrapped(heading_angles(joints) - truth)) > FLIP
         errors = toe_errors(joints, truth_joints)
         found[name] = {"flipped": int(flipped.sum()),
                        "toe_error_sum_flipped": float(errors[flipped].sum()),
@@ -85,20 +89,19 @@ def main(argv=None):
                      f"python -m training.data build --cmu ../shared/data/cmu --out {args.data} "
                      "--only test")
     weights = load_weights(args.weights)
-    retargeters = {"SKR and refiner": Retargeter(weights, warn=False),
-                   "SKR alone": Retargeter(weights, warn=False, refine=False)}
     started, results = time.perf_counter(), []
     for path in paths:
-        r = sequence_flips(retargeters, load_sequence(path))
+        sequence = load_sequence(path)
+        r = sequence_flips(row_skeletons(weights, sequence), sequence)
         results.append(r)
         if any(found["flipped"] for found in r["found"].values()):
             print(f"{r['sequence']} ({r['category']}, {r['frames']} frames): flipped "
-                  + ", ".join(f"{n} {r['found'][n]['flipped']}" for n in retargeters)
+                  + ", ".join(f"{n} {r['found'][n]['flipped']}" for n in ROWS)
                   + f"; the truth turns at most {r['truth_largest_turn_degrees']:.1f} degrees "
                   "a frame", flush=True)
     frames = sum(r["frames"] for r in results)
     summary = {}
-    for name in retargeters:
+    for name in ROWS:
         flipped = sum(r["found"][name]["flipped"] for r in results)
         toes = {part: sum(r["found"][name][f"toe_error_sum_{part}"] for r in results)
                 / max(1, 2 * count) for part, count in (("flipped", flipped),

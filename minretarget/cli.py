@@ -5,6 +5,7 @@
                          [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
                          [--weights FILE] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
+                         [--no-facing-check]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
@@ -46,7 +47,8 @@ DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
-                    mirror_source=False, refine=True, denoise=True, rest_pose=True):
+                    mirror_source=False, refine=True, denoise=True, rest_pose=True,
+                    facing_check=True):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -57,7 +59,8 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
     # warn=False: the command line checks the inputs itself, naming files and options.
     return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
                                    foot_lock=foot_lock, mirror_source=mirror_source,
-                                   refine=refine, denoise=denoise, rest_pose=rest_pose)
+                                   refine=refine, denoise=denoise, rest_pose=rest_pose,
+                                   facing_check=facing_check)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -124,6 +127,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                      smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
                      mirror_source=retargeter.mirror_source, refine=retargeter.refine,
                      denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
+                     facing_check=retargeter.facing_check,
                      **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
@@ -183,7 +187,8 @@ def _retarget(args):
         foot_lock = foot_lock._replace(max_offset=args.foot_leash)
     retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
                                  foot_lock, args.mirror_source, not args.no_refine,
-                                 not args.no_denoise, not args.no_rest_pose)
+                                 not args.no_denoise, not args.no_rest_pose,
+                                 not args.no_facing_check)
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -304,6 +309,10 @@ def build_parser():
                           help="align the target's T-pose bones with the source's as they "
                                "are (default: the weights' rest-pose model first turns them by "
                                "how the two bodies' proportions change their rest poses)")
+    retarget.add_argument("--no-facing-check", action="store_true",
+                          help="take every SKR skeleton as it comes (default: one that faces "
+                               "far from the skeleton tracked so far is read again from the "
+                               "cloud turned half round, and the reading facing nearer kept)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

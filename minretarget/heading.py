@@ -34,3 +34,16 @@ def heading_features(joints, previous_root):
         features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = turn_about_up(
             v[0], v[1], v[2], -sin, cos)
     return features, sin, cos
+
+
+def heading_angles(joints):
+    """The heading of ``heading_features`` as an angle: (..., J, 3) skeletons -> (...,)
+    float64 radians in (-pi, pi], the turn about +Y from +Z to the way each body faces."""
+    joints = np.asarray(joints, dtype=np.float64)
+    across = joints[..., 1, :] - joints[..., 2, :] + joints[..., 16, :] - joints[..., 17, :]
+    return np.arctan2(-across[..., 2], across[..., 0])
+
+
+def wrapped(angles):
+    """Angles (radians) into [-pi, pi)."""
+    return (np.asarray(angles) + np.pi) % (2 * np.pi) - np.pi

@@ -10,6 +10,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
+from .facing import check_facing
+from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .refine import refine_joints
@@ -40,7 +42,7 @@ class RetargetedFrame(NamedTuple):
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
                  foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
-                 denoise=True, rest_pose=True):
+                 denoise=True, rest_pose=True, facing_check=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -65,7 +67,11 @@ class Retargeter:
         starts (or ``reset()``): a stream refuses a denoiser other than the one it began with.
         ``rest_pose``: let SMRM's analytic prior allow for the two bodies' rest poses with the
         weights' rest-pose model (``rest_pose``), if they have one; False for the plain
-        analytic prior (the paper has neither)."""
+        analytic prior (the paper has neither).
+        ``facing_check``: in a stream, read a source cloud again half turned when SKR's
+        skeleton of it faces far from the skeleton tracked so far, and keep the reading that
+        faces nearer (``facing``: SKR now and then reads a body backwards); False for every
+        reading as it comes (the paper's pipeline)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
@@ -76,16 +82,17 @@ class Retargeter:
         self.refine = bool(refine)
         self.denoise = bool(denoise)
         self.rest_pose = bool(rest_pose)
+        self.facing_check = bool(facing_check)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True, denoise=True, rest_pose=True):
+                     refine=True, denoise=True, rest_pose=True, facing_check=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine, denoise, rest_pose)
+                   mirror_source, refine, denoise, rest_pose, facing_check)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -155,34 +162,39 @@ class Retargeter:
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
-        return self._step_joints(self._skr(points, self.mirror_source))
+        return self._step_joints(self._skr(points, self.mirror_source), points)
 
-    def step_skeleton(self, source_joints):
+    def step_skeleton(self, source_joints, points=None):
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
-        SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``)."""
+        SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``).
+        ``points``: the (P, 3) cloud the skeleton was found in (``skeleton``), if any, for
+        the facing check to read again; without it every skeleton stands as given."""
         if self.target is None:
             raise RuntimeError("call set_target before step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
+        if points is not None:
+            points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(source_joints, "source joints, frame 0")
-        return self._step_joints(source_joints)
+        return self._step_joints(source_joints, points)
 
-    def _step_joints(self, source_joints):
-        rotations, root = self._retarget_step(source_joints)
+    def _step_joints(self, source_joints, points=None):
+        rotations, root = self._retarget_step(source_joints, points)
         vertices, joints = self.pose(rotations, root)
         # A copy: the state's own array must not change if the caller edits the frame's.
         return RetargetedFrame(vertices, joints, rotations, root,
                                self._state.previous_joints.copy())
 
     def skeleton(self, points):
-        """The source skeleton(s) that ``step`` would hand SMRM before smoothing and
-        denoising: SKR,
-        mirror-averaged if ``mirror_source``, refined if ``refine``.
+        """The source skeleton(s) SKR finds, cloud by cloud: mirror-averaged if
+        ``mirror_source``, refined if ``refine``; what ``step`` reads before the facing check,
+        smoothing and denoising.
 
         Args:
             points: (P, 3) or (T, P, 3) float32 source clouds, metres.
         Returns:
-            (J, 3) or (T, J, 3) float32 joints, metres; ``step_skeleton`` takes them.
+            (J, 3) or (T, J, 3) float32 joints, metres; ``step_skeleton`` takes them (with
+            their clouds, for the facing check).
         """
         points = as_float32_array(points, "source points", (..., None, 3))
         if points.ndim not in (2, 3) or points.shape[-2] < MIN_POINTS or not len(points):
@@ -202,13 +214,21 @@ class Retargeter:
             return joints
         return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
 
-    def _retarget_step(self, source_joints):
-        """Smoothing, denoising, SMRM then the foot contacts on one frame's source skeleton
-        -> rotations, root."""
-        rotations, root, self._state = retarget_step(self.weights.smrm, self._state,
-                                                     source_joints, self.target.tpose_joints,
-                                                     self.smoothing, self.denoiser,
-                                                     self.rest_pose_model)
+    def _retarget_step(self, source_joints, points=None):
+        """The facing check (given the frame's ``points``), smoothing, denoising, SMRM then
+        the foot contacts on one frame's source skeleton -> rotations, root."""
+        if self.facing_check and points is not None:
+            reference, away = ((np.nan, 0) if self._state is None else
+                               (self._state.facing_reference, self._state.facing_away_frames))
+            source_joints, reference, away = check_facing(
+                source_joints, points, reference, away,
+                lambda clouds: self._skr(clouds, self.mirror_source))
+        else:      # tracked all the same, so that the check can be switched on mid-stream
+            reference, away = float(heading_angles(source_joints)), 0
+        rotations, root, state = retarget_step(self.weights.smrm, self._state, source_joints,
+                                               self.target.tpose_joints, self.smoothing,
+                                               self.denoiser, self.rest_pose_model)
+        self._state = state._replace(facing_reference=reference, facing_away_frames=away)
         rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
                                             self._state, self.foot_lock)
         return rotations, root
@@ -255,7 +275,7 @@ class Retargeter:
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):
-            rotations[t], root[t] = self._retarget_step(joints)
+            rotations[t], root[t] = self._retarget_step(joints, frames[t])
             source_joints[t] = self._state.previous_joints
         vertices, joints = self.pose(rotations, root)
         return RetargetedFrame(vertices, joints, rotations, root, source_joints)

@@ -72,6 +72,11 @@ class MotionState(NamedTuple):
                                  # (its height is SMRM's), metres
     foot_offset: np.ndarray      # (2, 3) float32 the move the feet get from the lock, metres
     feet_planted: np.ndarray     # (2,) bool
+    # The facing check (``minretarget.facing``), kept by ``Retargeter``: the heading the body
+    # is taken to face (radians; nan: none yet) and for how many frames in a row the readings
+    # have faced away from it.
+    facing_reference: float = float("nan")
+    facing_away_frames: int = 0
 
 
 def initial_state(weights, first_joints, denoiser=None):
@@ -91,7 +96,8 @@ def initial_state(weights, first_joints, denoiser=None):
 def check_state(weights, state, denoiser=None):
     """A MotionState checked against ``weights`` and ``denoiser`` (e.g. one read back from a
     file): hidden states of the right shapes, finite (J, 3) joints and velocities, a count,
-    finite (B,) bone lengths >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags.
+    finite (B,) bone lengths >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags,
+    a facing reference (a number, nan allowed) and a count of frames facing away.
     Returns it with C-contiguous float32 arrays; ValueError names the field."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     if not isinstance(state, MotionState):
@@ -107,13 +113,28 @@ def check_state(weights, state, denoiser=None):
     if not (lengths >= 0).all():
         raise ValueError(f"state.source_bone_lengths must be >= 0, got {lengths.min()} at "
                          f"bone {int(lengths.argmin())}")
+    frames, away = (_count(state, name) for name in ("frames_seen", "facing_away_frames"))
     try:
-        frames = int(state.frames_seen)
+        reference = float(state.facing_reference)
+    except (TypeError, ValueError):
+        raise ValueError(f"state: facing_reference must be a number (radians) or nan, got "
+                         f"{state.facing_reference!r}") from None
+    if np.isinf(reference):
+        raise ValueError(f"state: facing_reference must be finite or nan, got {reference}")
+    return MotionState(encoder, decoder, *joints, denoise, lengths, frames, *check_feet(state),
+                       reference, away)
+
+
+def _count(state, name):
+    """The field ``name`` of ``state`` as an int >= 0, or ValueError naming it."""
+    value = getattr(state, name)
+    try:
+        count = int(value)
     except (TypeError, ValueError, OverflowError):                  # None, "x", inf
-        frames = -1
-    if frames < 0 or frames != state.frames_seen:
-        raise ValueError(f"state: frames_seen must be a count, got {state.frames_seen!r}")
-    return MotionState(encoder, decoder, *joints, denoise, lengths, frames, *check_feet(state))
+        count = -1
+    if count < 0 or count != value:
+        raise ValueError(f"state: {name} must be a count, got {value!r}")
+    return count
 
 
 def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, denoiser=None,

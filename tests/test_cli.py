@@ -16,6 +16,7 @@ from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
 from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_NAMES, NUM_JOINTS
+from minretarget import retargeter as retargeter_module
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.skeletons import depth_first_order
@@ -132,6 +133,15 @@ def test_no_rest_pose_matches_the_python_api(inputs, monkeypatch, tmp_path):
     save_weights(tmp_path / "rest.npz", with_rest_pose(load_weights(WEIGHTS)))
     option_matches_the_api(inputs, monkeypatch, ("--no-rest-pose",), {"rest_pose": False},
                            str(tmp_path / "rest.npz"))
+
+
+def test_no_facing_check_matches_the_python_api(inputs, monkeypatch):
+    """--no-facing-check. The tiny model's skeletons of the test frames never face away from
+    each other, so a stand-in check that moves every skeleton shows whether the check ran."""
+    monkeypatch.setattr(retargeter_module, "check_facing",
+                        lambda reading, points, tracked, skeleton: reading + 0.01)
+    option_matches_the_api(inputs, monkeypatch, ("--no-facing-check",),
+                           {"facing_check": False}, WEIGHTS)
 
 
 def option_matches_the_api(inputs, monkeypatch, option, setting, weights):

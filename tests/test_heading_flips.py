@@ -27,26 +27,12 @@ def turned(joints, angles):
     return np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1)
 
 
-def test_headings_are_the_turn_from_plus_z():
-    angles = np.array([0.0, 0.5, np.pi / 2, -2.0, 3.0])
-    found = heading_flips.headings(turned(facing_plus_z(len(angles)), angles))
-    np.testing.assert_allclose(heading_flips.wrapped(found - angles), 0.0, atol=1e-5)
-
-
-class Finder:
-    """A stand-in for Retargeter.skeleton: the truth, turned half round on chosen frames."""
-    def __init__(self, truth, flipped):
-        self.answer = turned(truth, np.where(np.isin(np.arange(len(truth)), flipped), np.pi, 0))
-
-    def skeleton(self, points):
-        return self.answer
-
-
 def test_sequence_flips_counts_the_frames_facing_the_wrong_way():
     truth = turned(facing_plus_z(6), np.radians([170.0, 180.0, -170.0, -150.0, -150.0, -140.0]))
     sequence = {"name": "s", "category": "dance", "source_points": None, "source_joints": truth}
-    out = heading_flips.sequence_flips({"a": Finder(truth, [1, 4]), "b": Finder(truth, [])},
-                                       sequence)
+    half_turned = np.isin(np.arange(len(truth)), [1, 4])
+    out = heading_flips.sequence_flips({"a": turned(truth, np.where(half_turned, np.pi, 0.0)),
+                                        "b": truth}, sequence)
     assert out["frames"] == 6
     assert {name: found["flipped"] for name, found in out["found"].items()} == {"a": 2, "b": 0}
     assert out["found"]["b"]["toe_error_sum_flipped"] == 0.0

@@ -1,0 +1,84 @@
+"""Stage 1b': the facing check. A skeleton read backwards is read again, half turned.
+
+A point cloud does not say which way its body faces, and SKR now and then reads a body
+backwards: its skeleton turns half round about the vertical from one frame to the next, the
+legs and arms come out crossed and the feet jump by tens of centimetres (``benchmarks/
+heading_flips.py`` counts these frames). In a stream, the way the body faced a frame ago is
+known, and a body does not turn far in a frame. So the stream keeps a reference heading h0
+(``smrm.MotionState.facing_reference``: at first the first frame's) and, per frame:
+    1. SKR's skeleton of the cloud (the reading) faces h1 (``heading.heading_angles``); if
+       it is within ``TRIGGER`` of h0 it stands and h0 becomes h1 (nearly every frame: no
+       cost);
+    2. else SKR reads the cloud again turned half round about the vertical through its
+       centroid, and its skeleton is turned back: a second reading, with SKR's error in
+       another place, since SKR sees another picture. If it faces within ``TRIGGER`` of h0,
+       it is taken and h0 becomes its heading;
+    3. else both face away: the one facing nearer h0 is taken, but h0 stays, so that one
+       frame read backwards twice does not turn the reference round and have the next,
+       right, reading refused. Only after ``CONFIRM`` such frames in a row does h0 become the
+       first reading's heading (the body did turn, or h0 was wrong from the start).
+
+Measured on the training split's dance and seated trials (subject 05, salsa, martial arts,
+subject 13: 46,125 frames, the shipped weights; validation has no flips to tune on). The
+runtime's readings (SKR, then the refiner) face more than 90 degrees from the truth's in 95
+frames, the skeleton SMRM sees (after smoothing and the denoiser) in 82; with the check in
+41, for a second reading on 117 frames (0.25 %). Scored on the readings alone (no
+smoothing): the check leaves 40; taking the nearer reading and moving h0 to it every time
+(step 3 without the wait) leaves 49; waiting 1, 2, 3 or 8 frames 52, 52, 48 and 40; never
+moving h0 50. Triggers of 30, 60 and 90 degrees (with the nearer reading every time) left 50,
+55 and 70.
+"""
+import numpy as np
+
+from .conventions import MIN_POINTS
+from .heading import heading_angles, wrapped
+from .validation import as_float32_array, as_point_cloud
+
+TRIGGER = np.radians(45.0)   # a reading facing further than this from the reference is read
+#                              again
+CONFIRM = 5                  # frames in a row of both readings facing away that move the
+#                              reference to the first reading's heading
+
+
+def half_turned(points, centre):
+    """(..., N, 3) points turned half round about the vertical (+Y) through ``centre``
+    (..., 3): x and z mirrored about it, which is a proper rotation (by pi)."""
+    turned = np.array(points, dtype=np.float32)
+    turned[..., 0] = 2 * centre[..., None, 0] - turned[..., 0]
+    turned[..., 2] = 2 * centre[..., None, 2] - turned[..., 2]
+    return turned
+
+
+def check_facing(reading, points, reference, away_frames, skeleton, trigger=TRIGGER,
+                 confirm=CONFIRM):
+    """The facing check on one frame.
+
+    Args:
+        reading: (J, 3) float32 the skeleton found in ``points`` (e.g. SKR's), metres.
+        points: (P, 3) float32 the frame's cloud, metres.
+        reference: the heading the body is taken to face, radians (nan: none; the reading
+            then stands).
+        away_frames: the frames in a row before this one whose readings both faced away.
+        skeleton: the skeleton finder, clouds (1, P, 3) -> joints (1, J, 3); called only when
+            the reading faces further than ``trigger`` from ``reference``.
+        trigger: radians; confirm: frames.
+    Returns:
+        the (J, 3) float32 skeleton to use (``reading`` or the second reading), and the
+        reference and away_frames for the next frame.
+    """
+    reading = as_float32_array(reading, "reading", (None, 3))
+    first = float(heading_angles(reading))
+    away = abs(wrapped(first - reference))
+    if not away > trigger:                      # nan (no reference, or a body of no width)
+        return reading, first, 0
+    points = as_point_cloud(points, "points", MIN_POINTS)
+    centre = points.mean(axis=0, dtype=np.float64).astype(np.float32)
+    second = half_turned(skeleton(half_turned(points, centre)[None])[0], centre)
+    heading = float(heading_angles(second))
+    second_away = abs(wrapped(heading - reference))
+    if second_away <= trigger:
+        return second, heading, 0
+    nearer = second if second_away < away else reading
+    if away_frames + 1 >= confirm:
+        return nearer, first, 0
+    return nearer, reference, away_frames + 1
