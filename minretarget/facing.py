@@ -69,7 +69,7 @@ def check_facing(reading, points, reference, away_frames, skeleton, trigger=TRIG
     reading = as_float32_array(reading, "reading", (None, 3))
     first = float(heading_angles(reading))
     away = abs(wrapped(first - reference))
-    if not away > trigger:                      # nan (no reference, or a body of no width)
+    if not away > trigger:                      # also nan: no reference yet
         return reading, first, 0
     points = as_point_cloud(points, "points", MIN_POINTS)
     centre = points.mean(axis=0, dtype=np.float64).astype(np.float32)
