@@ -191,6 +191,28 @@ def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):
         second.state = first.state._replace(encoder_hidden=np.zeros((1, 3)))
     with pytest.raises(ValueError, match="frames_seen"):
         second.state = first.state._replace(frames_seen=-1)
+    for field, bad in (("facing_away_frames", -1), ("facing_away_frames", 1.5),
+                       ("facing_reference", np.inf), ("facing_reference", "x")):
+        with pytest.raises(ValueError, match=field):
+            second.state = first.state._replace(**{field: bad})
+
+
+def test_a_checkpoint_keeps_the_whole_state(tiny_weights, tiny_stream, tmp_path):
+    """Every MotionState field, the facing check's included, comes back from a checkpoint."""
+    target, sources, _ = tiny_stream
+    retargeter = Retargeter(tiny_weights, warn=False)
+    retargeter.set_target(target)
+    for points in sources[:3]:
+        retargeter.step(points)
+    state = retargeter.state._replace(facing_reference=1.25, facing_away_frames=3)
+    run = {"version": 8, "frames": 10, "denoise": True}     # the tiny weights' denoiser
+    track = Track(tmp_path / TRACK)
+    save_checkpoint(tmp_path, run, state, 3, track)
+    track.close()
+    frames_done, loaded = load_checkpoint(tmp_path, run, tiny_weights)
+    assert frames_done == 3 and loaded._fields == state._fields
+    for name, value in zip(state._fields, state):
+        np.testing.assert_array_equal(getattr(loaded, name), value, err_msg=name)
 
 
 def resident_bytes():
