@@ -15,8 +15,9 @@ took 4 min (5 frames), 7, 9, 23 (30), 34 (60) and 20 (no rotation cycle): 95 min
 
 Then every variant retargets the test benchmark online (``accuracy.py``'s sequences; --quick:
 its subset): SKR runs once per sequence (the shipped SKR, shared by all variants) and each
-SMRM streams (a) those SKR source skeletons, smoothed as ``Retargeter`` does by default: the
-whole pipeline, and (b) the true source joints, unsmoothed: SMRM alone. Prints and writes one
+SMRM streams (a) those SKR source skeletons, checked for facing and smoothed as
+``Retargeter`` does by default (the stored quick run predates the facing check): the whole
+pipeline, and (b) the true source joints, unsmoothed: SMRM alone. Prints and writes one
 table per input, rows = variants, the metrics of ``minretarget.metrics`` averaged over frames.
 """
 import argparse

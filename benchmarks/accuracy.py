@@ -12,8 +12,8 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
                          and denoised (minretarget.denoise) before SMRM, whose analytic
                          prior allows for the two bodies' rest poses (minretarget.rest_pose),
                          feet held on their contacts after it (minretarget.contacts); a
-                         skeleton facing far from the one tracked is read again from the
-                         cloud half turned (minretarget.facing)
+                         skeleton facing far from the heading kept so far is read again
+                         from the cloud half turned (minretarget.facing)
     model, no refiner    the same without the joint refiner (source and target skeletons)
     model, no denoiser   the same as the model without the skeleton denoiser
     model, no foot lock  the same as the model without the foot contacts

@@ -33,7 +33,8 @@ def main():
     weights = runtime_weights(model.skr, model.smrm, model.skin, refine=model.refine,
                               denoise=model.denoise)
     retargeter = Retargeter(weights, warn=False,
-                            smoothing=None, foot_lock=None, mirror_target=False)
+                            smoothing=None, foot_lock=None, mirror_target=False,
+                            facing_check=False)
     target, sources = random_stream(seed=0, frames=args.frames, target_points=args.target,
                                     min_points=args.points, max_points=args.points + 1)
     retargeter.set_target(target)

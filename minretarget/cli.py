@@ -311,8 +311,8 @@ def build_parser():
                                "how the two bodies' proportions change their rest poses)")
     retarget.add_argument("--no-facing-check", action="store_true",
                           help="take every SKR skeleton as it comes (default: one that faces "
-                               "far from the skeleton tracked so far is read again from the "
-                               "cloud turned half round, and the reading facing nearer kept)")
+                               "far from the heading kept so far is read again from the cloud "
+                               "turned half round, and the reading facing nearer kept)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

@@ -30,7 +30,7 @@ moving h0 50. Triggers of 30, 60 and 90 degrees (with the nearer reading every t
 """
 import numpy as np
 
-from .conventions import MIN_POINTS
+from .conventions import MIN_POINTS, NUM_JOINTS
 from .heading import heading_angles, wrapped
 from .validation import as_float32_array, as_point_cloud
 
@@ -66,12 +66,15 @@ def check_facing(reading, points, reference, away_frames, skeleton, trigger=TRIG
         the (J, 3) float32 skeleton to use (``reading`` or the second reading), and the
         reference and away_frames for the next frame.
     """
-    reading = as_float32_array(reading, "reading", (None, 3))
+    reading = as_float32_array(reading, "reading", (NUM_JOINTS, 3))
+    points = as_point_cloud(points, "points", MIN_POINTS)
+    if not (np.isnan(reference) or np.isfinite(reference)) or away_frames < 0:
+        raise ValueError(f"reference must be finite or nan and away_frames >= 0, got "
+                         f"{reference!r} and {away_frames!r}")
     first = float(heading_angles(reading))
     away = abs(wrapped(first - reference))
     if not away > trigger:                      # also nan: no reference yet
         return reading, first, 0
-    points = as_point_cloud(points, "points", MIN_POINTS)
     centre = points.mean(axis=0, dtype=np.float64).astype(np.float32)
     second = half_turned(skeleton(half_turned(points, centre)[None])[0], centre)
     heading = float(heading_angles(second))

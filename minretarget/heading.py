@@ -7,6 +7,11 @@ direction.
 import numpy as np
 
 from ._jit import kernel
+from .conventions import JOINT_INDEX
+
+# The joints whose left-right axis says which way the body faces.
+_LEFT_HIP, _RIGHT_HIP, _LEFT_SHOULDER, _RIGHT_SHOULDER = (
+    JOINT_INDEX[name] for name in ("left_hip", "right_hip", "left_shoulder", "right_shoulder"))
 
 
 @kernel
@@ -25,7 +30,8 @@ def heading_features(joints, previous_root):
     turned by minus the heading."""
     j = joints.shape[0]
     root = joints[0]
-    across = joints[1] - joints[2] + joints[16] - joints[17]
+    across = (joints[_LEFT_HIP] - joints[_RIGHT_HIP]
+              + joints[_LEFT_SHOULDER] - joints[_RIGHT_SHOULDER])
     norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
     sin, cos = -across[2] / norm, across[0] / norm
     features = np.empty((1, 3 * j + 3), dtype=np.float32)
@@ -40,7 +46,8 @@ def heading_angles(joints):
     """The heading of ``heading_features`` as an angle: (..., J, 3) skeletons -> (...,)
     float64 radians in (-pi, pi], the turn about +Y from +Z to the way each body faces."""
     joints = np.asarray(joints, dtype=np.float64)
-    across = joints[..., 1, :] - joints[..., 2, :] + joints[..., 16, :] - joints[..., 17, :]
+    across = (joints[..., _LEFT_HIP, :] - joints[..., _RIGHT_HIP, :]
+              + joints[..., _LEFT_SHOULDER, :] - joints[..., _RIGHT_SHOULDER, :])
     return np.arctan2(-across[..., 2], across[..., 0])
 
 

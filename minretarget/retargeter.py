@@ -69,7 +69,7 @@ class Retargeter:
         weights' rest-pose model (``rest_pose``), if they have one; False for the plain
         analytic prior (the paper has neither).
         ``facing_check``: in a stream, read a source cloud again half turned when SKR's
-        skeleton of it faces far from the skeleton tracked so far, and keep the reading that
+        skeleton of it faces far from the heading kept so far, and keep the reading that
         faces nearer (``facing``: SKR now and then reads a body backwards); False for every
         reading as it comes (the paper's pipeline)."""
         self.weights = weights
@@ -167,8 +167,9 @@ class Retargeter:
     def step_skeleton(self, source_joints, points=None):
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
         SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``).
-        ``points``: the (P, 3) cloud the skeleton was found in (``skeleton``), if any, for
-        the facing check to read again; without it every skeleton stands as given."""
+        ``points``: the (P, 3) cloud the skeleton was found in (``skeleton``), if any: the
+        facing check then runs SKR on it again, half turned, when the skeleton faces away;
+        without it every skeleton stands as given."""
         if self.target is None:
             raise RuntimeError("call set_target before step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))

@@ -98,6 +98,67 @@ def test_when_both_readings_face_away_the_reference_waits(second_heading, nearer
             assert (reference, away) == (pytest.approx(0.2 + 2.5, abs=1e-5), 0)
 
 
+class ScriptedRetargeter(Retargeter):
+    """SKR replaced by a script: ``readings`` (frame t's cloud -> facing(readings[t], seed=t))
+    and ``seconds`` (frame t's cloud half turned -> facing(seconds[t] + pi, seed=100 + t),
+    which turned back faces seconds[t]); records the mirrored flags it is called with."""
+    def __init__(self, weights, clouds, readings, seconds, **options):
+        super().__init__(weights, warn=False, smoothing=None, denoise=False, **options)
+        self.answers = [(c, facing(h, seed=t)) for t, (c, h) in enumerate(zip(clouds, readings))]
+        self.answers += [(half_turned(c, c.mean(axis=0)), facing(h + np.pi, seed=100 + t))
+                         for t, (c, h) in enumerate(zip(clouds, seconds))]
+        self.mirrored = []
+
+    def _skr(self, points, mirrored):
+        self.mirrored.append(mirrored)
+
+        def one(cloud):
+            [answer] = [a for c, a in self.answers if np.allclose(c, cloud, atol=1e-6)]
+            return answer
+        return np.stack([one(c) for c in points]) if points.ndim == 3 else one(points)
+
+
+def scripted(tiny_weights, target, frames, **options):
+    """A ScriptedRetargeter whose frame 0 faces 0 and frames 1.. face pi, their second
+    readings pi - 0.5 (both away from 0: the second is nearer), on ``target``."""
+    clouds = np.random.default_rng(1).normal(size=(frames, 300, 3)).astype(np.float32)
+    headings = [0.0] + [np.pi] * (frames - 1)
+    retargeter = ScriptedRetargeter(tiny_weights, clouds, headings,
+                                    [0.0] + [np.pi - 0.5] * (frames - 1), **options)
+    retargeter.set_target(target, tpose_joints=facing(0.0),
+                          skin_weights=np.full((len(target), NUM_JOINTS), 1 / NUM_JOINTS))
+    return retargeter, clouds
+
+
+@pytest.mark.parametrize("mirror_source", [False, True])
+def test_the_reference_waits_confirm_frames_and_resumes_mid_wait(tiny_weights, tiny_stream,
+                                                                 mirror_source):
+    target, _, _ = tiny_stream
+    frames = CONFIRM + 3
+    retargeter, clouds = scripted(tiny_weights, target, frames, mirror_source=mirror_source)
+    got, states = [], []
+    for cloud in clouds:
+        got.append(retargeter.step(cloud))
+        states.append(retargeter.state)
+    # Frames 1 .. CONFIRM: both readings face away; the nearer (second) is used and the
+    # reference stays 0, until frame CONFIRM moves it to the first reading's heading (pi).
+    # After it the readings face the reference and stand.
+    for t in range(1, frames):
+        kept = (half_turned(facing(np.pi - 0.5 + np.pi, seed=100 + t), clouds[t].mean(axis=0))
+                if t <= CONFIRM else facing(np.pi, seed=t))
+        np.testing.assert_allclose(got[t].source_joints, kept, atol=1e-5, err_msg=str(t))
+        if t < CONFIRM:
+            assert (states[t].facing_reference, states[t].facing_away_frames) == (0.0, t)
+    assert states[CONFIRM].facing_away_frames == 0
+    assert abs(wrapped(states[CONFIRM].facing_reference - np.pi)) < 1e-5
+    assert set(retargeter.mirrored) == {mirror_source}     # the second readings' finder too
+    # Resumed mid-wait on another retargeter: the same frames as the unbroken stream.
+    resumed, _ = scripted(tiny_weights, target, frames, mirror_source=mirror_source)
+    resumed.state = states[2]
+    for t in range(3, frames):
+        np.testing.assert_array_equal(resumed.step(clouds[t]).vertices, got[t].vertices)
+
+
 class FlippingRetargeter(Retargeter):
     """SKR replaced: frame 0's cloud reads as facing 0, frame 1's as facing pi (backwards),
     and frame 1's cloud half turned as facing pi + 0.2 (0.2 once turned back)."""

@@ -32,7 +32,8 @@ def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp
     export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin,
                    refine=tiny_model.refine, denoise=tiny_model.denoise)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None,      # as torch
-                                         foot_lock=None, mirror_target=False)
+                                         foot_lock=None, mirror_target=False,
+                                         facing_check=False)
     target, sources = random_stream(seed=1, frames=60)
     want = reference_outputs(tiny_model, target, sources)
     retargeter.set_target(target)
@@ -62,7 +63,7 @@ def test_smrm_with_the_analytic_prior_matches_torch(tmp_path, rest_pose):
     export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine,
                    denoise=model.denoise)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None, foot_lock=None,
-                                         mirror_target=False)
+                                         mirror_target=False, facing_check=False)
     assert retargeter.weights.config.smrm_analytic_prior and retargeter.weights.smrm.analytic_prior
     assert (retargeter.rest_pose_model is not None) == rest_pose
     target, sources = random_stream(seed=4, frames=40)
@@ -155,7 +156,8 @@ def test_paper_size_stages_match_torch(tmp_path):
     np.testing.assert_allclose(joints, want_joints, atol=TOLERANCE)
     np.testing.assert_allclose(skinning_weights(points, joints, weights.skin), want_weights,
                                atol=1e-5)
-    retargeter = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False)
+    retargeter = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
+                            facing_check=False)
     retargeter.set_target(points)
     for t in range(10):
         frame = retargeter.step_skeleton(source[0, t].numpy())
