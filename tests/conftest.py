@@ -4,6 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.denoise import denoise_joints, hidden_shape
 from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from minretarget.weights import load_weights
@@ -46,3 +47,21 @@ def with_rest_pose(weights, seed=0):
         config=dataclasses.replace(weights.config, smrm_analytic_prior=True, rest_pose=True),
         smrm=weights.smrm._replace(analytic_prior=True),
         rest_pose=RestPoseWeights(directions.astype(np.float32)))
+
+
+def turned_about_up(points, angles):
+    """Points (..., N, 3) turned about +Y by ``angles`` (...,) radians (+Z toward +X)."""
+    angles = np.asarray(angles)[..., None]
+    cos, sin = np.cos(angles), np.sin(angles)
+    x, y, z = np.moveaxis(points, -1, 0)
+    return np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1)
+
+
+def facing(angle, seed=0):
+    """A (J, 3) float32 skeleton facing ``angle`` radians from +Z about +Y (hips and shoulders
+    across its left), the other joints random, pelvis near (0.3, 1, -0.2)."""
+    joints = np.random.default_rng(seed).normal(0.0, 0.05, (NUM_JOINTS, 3))
+    for name, x in (("left_hip", 0.1), ("right_hip", -0.1), ("left_shoulder", 0.2),
+                    ("right_shoulder", -0.2)):
+        joints[JOINT_INDEX[name]] = (x, 0.0, 0.0)
+    return (turned_about_up(joints, angle) + (0.3, 1.0, -0.2)).astype(np.float32)

@@ -2,25 +2,16 @@
 import numpy as np
 import pytest
 
-from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
+from conftest import facing
+from minretarget.conventions import NUM_JOINTS
 from minretarget.facing import CONFIRM, TRIGGER, check_facing, half_turned
 from minretarget.heading import heading_angles, heading_features, wrapped
 from minretarget.retargeter import Retargeter
 
-RNG = np.random.default_rng(0)
 
-
-def facing(angle, seed=0):
-    """A (J, 3) float32 skeleton facing ``angle`` radians from +Z about +Y, other joints
-    random, pelvis at (0.3, 1, -0.2)."""
-    joints = np.random.default_rng(seed).normal(0.0, 0.05, (NUM_JOINTS, 3))
-    for name, x in (("left_hip", 0.1), ("right_hip", -0.1), ("left_shoulder", 0.2),
-                    ("right_shoulder", -0.2)):
-        joints[JOINT_INDEX[name]] = (x, 0.0, 0.0)
-    cos, sin = np.cos(angle), np.sin(angle)
-    x, y, z = joints.T
-    turned = np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1)
-    return (turned + (0.3, 1.0, -0.2)).astype(np.float32)
+def cloud(*shape, seed=0):
+    """Random float32 points of ``shape``, the same every run."""
+    return np.random.default_rng(seed).normal(size=shape).astype(np.float32)
 
 
 def test_heading_angles_are_the_turn_from_plus_z_as_smrm_sees_it():
@@ -33,7 +24,7 @@ def test_heading_angles_are_the_turn_from_plus_z_as_smrm_sees_it():
 
 
 def test_half_turned_is_a_half_turn_about_the_vertical_through_the_centre():
-    points = RNG.normal(size=(50, 3)).astype(np.float32)
+    points = cloud(50, 3)
     centre = np.array([0.4, 9.0, -1.0], np.float32)
     turned = half_turned(points, centre)
     np.testing.assert_allclose(turned[:, 1], points[:, 1])                 # heights kept
@@ -56,7 +47,7 @@ class Finder:
 
 
 def test_a_reading_facing_near_the_reference_or_with_none_stands():
-    points = RNG.normal(size=(200, 3)).astype(np.float32)
+    points = cloud(200, 3)
     finder = Finder(facing(0.0))
     reading = facing(np.pi)                                   # backwards
     for reference, away_frames in ((np.nan, 0), (np.pi - TRIGGER + 0.01, 3)):
@@ -68,7 +59,7 @@ def test_a_reading_facing_near_the_reference_or_with_none_stands():
 
 
 def test_a_reading_facing_away_is_read_again_half_turned():
-    points = RNG.normal(size=(200, 3)).astype(np.float32)
+    points = cloud(200, 3)
     centre = points.mean(axis=0)
     reading = facing(0.2 + np.pi - 0.3)
     # The finder sees the half-turned cloud; its skeleton there faces 0.1 + pi, which turned
@@ -84,7 +75,7 @@ def test_a_reading_facing_away_is_read_again_half_turned():
 @pytest.mark.parametrize("second_heading, nearer", [(0.2 - 2.0, "second"), (0.2 + 2.9, "first")])
 def test_when_both_readings_face_away_the_reference_waits(second_heading, nearer):
     """The nearer reading is used, the reference kept, until CONFIRM frames in a row."""
-    points = RNG.normal(size=(200, 3)).astype(np.float32)
+    points = cloud(200, 3)
     centre = points.mean(axis=0)
     reading = facing(0.2 + 2.5)                              # 2.5 away from the reference 0.2
     finder = Finder(facing(second_heading + np.pi, seed=1))  # turned back: second_heading
@@ -121,7 +112,7 @@ class ScriptedRetargeter(Retargeter):
 def scripted(tiny_weights, target, frames, **options):
     """A ScriptedRetargeter whose frame 0 faces 0 and frames 1.. face pi, their second
     readings pi - 0.5 (both away from 0: the second is nearer), on ``target``."""
-    clouds = np.random.default_rng(1).normal(size=(frames, 300, 3)).astype(np.float32)
+    clouds = cloud(frames, 300, 3, seed=1)
     headings = [0.0] + [np.pi] * (frames - 1)
     retargeter = ScriptedRetargeter(tiny_weights, clouds, headings,
                                     [0.0] + [np.pi - 0.5] * (frames - 1), **options)
@@ -179,7 +170,7 @@ class FlippingRetargeter(Retargeter):
 def test_the_retargeter_hands_smrm_the_reading_facing_nearer(tiny_weights, tiny_stream,
                                                              facing_check):
     target, _, _ = tiny_stream
-    clouds = RNG.normal(size=(2, 300, 3)).astype(np.float32)
+    clouds = cloud(2, 300, 3)
     retargeter = FlippingRetargeter(tiny_weights, clouds, facing_check=facing_check)
     retargeter.set_target(target, tpose_joints=facing(0.0),
                           skin_weights=np.full((len(target), NUM_JOINTS), 1 / NUM_JOINTS))

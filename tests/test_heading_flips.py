@@ -5,33 +5,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
+from conftest import facing, turned_about_up
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import heading_flips  # noqa: E402
 
 
-def facing_plus_z(frames):
-    """(frames, J, 3) skeletons facing +Z (their left on +X), each with random other joints."""
-    joints = np.random.default_rng(0).normal(0.0, 0.05, (frames, NUM_JOINTS, 3))
-    for name, x in (("left_hip", 0.1), ("right_hip", -0.1), ("left_shoulder", 0.2),
-                    ("right_shoulder", -0.2)):
-        joints[:, JOINT_INDEX[name]] = (x, 1.0, 0.0)
-    return joints
-
-
-def turned(joints, angles):
-    """Skeletons (T, J, 3) turned about +Y by (T,) angles, radians (+Z toward +X)."""
-    cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    x, y, z = np.moveaxis(joints, -1, 0)
-    return np.stack([cos * x + sin * z, y, cos * z - sin * x], axis=-1)
-
-
 def test_sequence_flips_counts_the_frames_facing_the_wrong_way():
-    truth = turned(facing_plus_z(6), np.radians([170.0, 180.0, -170.0, -150.0, -150.0, -140.0]))
+    angles = np.radians([170.0, 180.0, -170.0, -150.0, -150.0, -140.0])
+    truth = np.stack([facing(angle, seed) for seed, angle in enumerate(angles)])
     sequence = {"name": "s", "category": "dance", "source_points": None, "source_joints": truth}
     half_turned = np.isin(np.arange(len(truth)), [1, 4])
-    out = heading_flips.sequence_flips({"a": turned(truth, np.where(half_turned, np.pi, 0.0)),
+    out = heading_flips.sequence_flips({"a": turned_about_up(truth,
+                                                             np.where(half_turned, np.pi, 0.0)),
                                         "b": truth}, sequence)
     assert out["frames"] == 6
     assert {name: found["flipped"] for name, found in out["found"].items()} == {"a": 2, "b": 0}
