@@ -68,9 +68,14 @@ def check_facing(reading, points, reference, away_frames, skeleton, trigger=TRIG
     """
     reading = as_float32_array(reading, "reading", (NUM_JOINTS, 3))
     points = as_point_cloud(points, "points", MIN_POINTS)
-    if not (np.isnan(reference) or np.isfinite(reference)) or away_frames < 0:
+    if np.isinf(reference) or away_frames < 0:
         raise ValueError(f"reference must be finite or nan and away_frames >= 0, got "
                          f"{reference!r} and {away_frames!r}")
+    return _check_facing(reading, points, reference, away_frames, skeleton, trigger, confirm)
+
+
+def _check_facing(reading, points, reference, away_frames, skeleton, trigger, confirm):
+    """``check_facing`` on inputs already checked (the Retargeter's, every frame)."""
     first = float(heading_angles(reading))
     away = abs(wrapped(first - reference))
     if not away > trigger:                      # also nan: no reference yet

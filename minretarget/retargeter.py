@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
-from .facing import check_facing
+from .facing import CONFIRM, TRIGGER, _check_facing
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
@@ -221,9 +221,10 @@ class Retargeter:
         if self.facing_check and points is not None:
             reference, away = ((np.nan, 0) if self._state is None else
                                (self._state.facing_reference, self._state.facing_away_frames))
-            source_joints, reference, away = check_facing(
+            # step and step_skeleton have checked the joints and the cloud already
+            source_joints, reference, away = _check_facing(
                 source_joints, points, reference, away,
-                lambda clouds: self._skr(clouds, self.mirror_source))
+                lambda clouds: self._skr(clouds, self.mirror_source), TRIGGER, CONFIRM)
         else:      # tracked all the same, so that the check can be switched on mid-stream
             reference, away = float(heading_angles(source_joints)), 0
         rotations, root, state = retarget_step(self.weights.smrm, self._state, source_joints,

@@ -138,8 +138,8 @@ def test_no_rest_pose_matches_the_python_api(inputs, monkeypatch, tmp_path):
 def test_no_facing_check_matches_the_python_api(inputs, monkeypatch):
     """--no-facing-check. The tiny model's skeletons of the test frames never face away from
     each other, so a stand-in check that moves every skeleton shows whether the check ran."""
-    monkeypatch.setattr(retargeter_module, "check_facing",
-                        lambda reading, points, reference, away, skeleton:
+    monkeypatch.setattr(retargeter_module, "_check_facing",
+                        lambda reading, points, reference, away, skeleton, trigger, confirm:
                         (reading + 0.01, reference, away))
     option_matches_the_api(inputs, monkeypatch, ("--no-facing-check",),
                            {"facing_check": False}, WEIGHTS)
