@@ -394,9 +394,12 @@ def main():
         "warm_start_s": results["compile"]["warm"]["import_to_first_frame_s"],
         "memory_growth_mb": rss[-1] - rss[1] if len(rss) > 1 else 0.0,
     })
+    compiled = (f"{results['ratio_vs_torch_compile']:.2f}x torch.compile"
+                if results["ratio_vs_torch_compile"] is not None
+                else f"torch.compile failed ({row['torch']['compile_error']})")
     print(f"default setting P={DEFAULT_SETTING[0]}, V={DEFAULT_SETTING[1]}: "
           f"{results['fps_end_to_end']:.1f} frames/s, {results['ratio_vs_torch']:.2f}x torch "
-          f"eager, {results['ratio_vs_onnxruntime']:.2f}x onnxruntime, SKR at "
+          f"eager, {compiled}, {results['ratio_vs_onnxruntime']:.2f}x onnxruntime, SKR at "
           f"{results['skr_gflops']:.1f} GFLOP/s = {100 * results['skr_fraction_of_peak']:.0f}% "
           f"of peak; warm start {results['warm_start_s']:.2f} s; resident memory "
           f"{rss[0]:.1f} -> {rss[-1]:.1f} MB over {results['memory_frames']} frames; offline "

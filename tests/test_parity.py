@@ -77,6 +77,26 @@ def test_smrm_with_the_analytic_prior_matches_torch(tmp_path, rest_pose):
         np.testing.assert_allclose(got, want[key], atol=TOLERANCE, err_msg=key)
 
 
+def test_the_torch_reference_traces_under_torch_compile():
+    """The speed benchmark times the reference under torch.compile: its whole step, the
+    rest-pose prior included, must trace (dynamo turns NumPy integer index lists into
+    tensors it cannot index with) and give eager's outputs. The eager backend traces as
+    inductor does, without its minutes of code generation."""
+    config = dataclasses.replace(TINY_CONFIG, smrm_analytic_prior=True, rest_pose=True)
+    model = random_reference(config, 3)
+    target, sources = random_stream(seed=4, frames=3)
+    with torch.no_grad():
+        model.smrm.rest_directions.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(5))
+        model.set_target(torch.from_numpy(target))
+        first, state = model(torch.from_numpy(sources[0]), None)
+        want, _ = model(torch.from_numpy(sources[1]), state)
+        torch._dynamo.reset()
+        got, _ = torch.compile(model, backend="eager")(
+            torch.from_numpy(sources[1]), state)
+    for key in want:
+        torch.testing.assert_close(got[key], want[key], atol=1e-6, rtol=0, msg=key)
+
+
 def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights, tiny_stream):
     """tests/golden was made from this reference; regenerate it (make_golden.py) if this fails."""
     target, sources, golden = tiny_stream

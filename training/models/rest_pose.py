@@ -22,7 +22,7 @@ def torch_prior_reference(directions, target_tpose, source_lengths):
         (..., J, 3) the reference skeleton.
     """
     def predicted(lengths):
-        symmetric = 0.5 * (lengths + lengths[..., list(_MIRROR_BONE)])
+        symmetric = 0.5 * (lengths + lengths[..., _MIRROR_BONE.tolist()])
         total = symmetric.sum(-1, keepdim=True).clamp_min(1e-6)
         features = torch.cat([torch.ones_like(total), symmetric / total, total], -1)
         flat = features @ directions
