@@ -10,11 +10,12 @@ import pytest
 
 pytest.importorskip("anny")
 
-from minretarget.conventions import NUM_JOINTS  # noqa: E402
+from minretarget.conventions import JOINT_INDEX, NUM_JOINTS  # noqa: E402
 from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # noqa: E402
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
-from training.data.datasets import BuildConfig, _Frames, augment, build  # noqa: E402
+from training.data.datasets import (BuildConfig, _Frames, augment, build,  # noqa: E402
+                                     seated_legs)
 
 ACTOR_HIP_HEIGHT = 0.9
 TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
@@ -270,6 +271,76 @@ def test_category_power_changes_the_skr_frames_alone(built, cache, tmp_path):
         _load(other / "skr_train.npz")["joints"].tobytes()
     for key, value in _load(plain / "smrm_train.npz").items():
         np.testing.assert_array_equal(_load(other / "smrm_train.npz")[key], value, err_msg=key)
+
+
+def _straight_legged_tpose():
+    """(J, 3) a T-pose whose legs hang straight down from the hips (bones along -Y) onto
+    level soles, the other joints anywhere: bend angles then read off directly."""
+    joints = np.random.default_rng(0).normal(0.0, 0.1, (NUM_JOINTS, 3)) + (0.0, 1.2, 0.0)
+    joints[0] = (0.0, 1.0, 0.0)
+    for side, x in (("left", 0.1), ("right", -0.1)):
+        for name, height in (("hip", 0.9), ("knee", 0.5), ("ankle", 0.1)):
+            joints[JOINT_INDEX[f"{side}_{name}"]] = (x, height, 0.0)
+        joints[JOINT_INDEX[f"{side}_foot"]] = (x, 0.1, 0.12)         # the sole level
+    return joints.astype(np.float32)
+
+
+def test_seated_legs_bend_hips_and_knees_forward_and_keep_the_rest():
+    """From any pose: the thighs swing forward 25 to 135 degrees from straight down (flexion
+    40 to 120, spread and twist aside), each knee bends 40 to 140 degrees (the angle between
+    thigh and shank, a hinge about the thigh's left axis), the soles stay within 40 degrees
+    of the shank's right angle; every other joint's rotation is untouched."""
+    rng = np.random.default_rng(1)
+    rotations = rng.normal(size=(500, NUM_JOINTS, 4)).astype(np.float32)
+    rotations /= np.linalg.norm(rotations, axis=-1, keepdims=True)
+    rotations[:, 0] = (1.0, 0.0, 0.0, 0.0)           # an upright pelvis: angles in its frame
+    seated = seated_legs(rotations, np.random.default_rng(2))
+    legs = [JOINT_INDEX[f"{side}_{name}"] for side in ("left", "right")
+            for name in ("hip", "knee", "ankle")]
+    others = np.setdiff1d(np.arange(NUM_JOINTS), legs)
+    np.testing.assert_array_equal(seated[:, others], rotations[:, others])
+    np.testing.assert_allclose(np.linalg.norm(seated, axis=-1), 1.0, atol=1e-6)
+    joints = forward_kinematics(seated, np.zeros((500, 3), np.float32),
+                                _straight_legged_tpose())[0]
+    for side in ("left", "right"):
+        hip, knee, ankle, foot = (joints[:, JOINT_INDEX[f"{side}_{name}"]]
+                                  for name in ("hip", "knee", "ankle", "foot"))
+        thigh, shank, sole = knee - hip, ankle - knee, foot - ankle
+        swing = np.degrees(np.arctan2(thigh[:, 2], -thigh[:, 1]))
+        assert swing.min() > 25 and swing.max() < 135
+        cosine = (thigh * shank).sum(-1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(
+            shank, axis=-1)
+        bend = np.degrees(np.arccos(np.clip(cosine, -1, 1)))
+        assert bend.min() > 39.9 and bend.max() < 140.1
+        assert bend.max() - bend.min() > 80                            # spread over the range
+        cosine = (shank * sole).sum(-1) / np.linalg.norm(shank, axis=-1) / np.linalg.norm(
+            sole, axis=-1)
+        ankle_angle = np.degrees(np.arccos(np.clip(cosine, -1, 1)))
+        assert np.abs(ankle_angle - 90).max() < 40.1
+
+
+def test_seated_fraction_bends_the_skr_frames_knees(built, cache, tmp_path):
+    """seated_fraction 1: every SKR frame's knee bends more than any of the plain build's
+    walking frames' (at most 30 degrees, the body's rest bend in); out of [0, 1] refused."""
+    out, _ = built
+    folder = tmp_path / "seated"
+    build(MOTIONS, ACTOR_HIP_HEIGHT, folder, BuildConfig(**{**TINY.__dict__,
+                                                            "seated_fraction": 1.0}),
+          cache_dir=cache, show_progress=False, datasets=("skr",))
+
+    def knee_bend(joints):
+        hip, knee, ankle = (joints[:, JOINT_INDEX[f"left_{name}"]]
+                            for name in ("hip", "knee", "ankle"))
+        thigh, shank = knee - hip, ankle - knee
+        cosine = (thigh * shank).sum(-1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(
+            shank, axis=-1)
+        return np.degrees(np.arccos(np.clip(cosine, -1, 1)))
+
+    for split in ("train", "val"):
+        plain = knee_bend(_load(out / f"skr_{split}.npz")["joints"])
+        assert knee_bend(_load(folder / f"skr_{split}.npz")["joints"]).min() > plain.max() + 5
+    with pytest.raises(ValueError, match=r"seated_fraction must be in \[0, 1\], got 1.5"):
+        BuildConfig(seated_fraction=1.5)
 
 
 @pytest.mark.parametrize("text, message", [("nan", "must be finite, got nan"),

@@ -3,6 +3,7 @@
     python -m training.data build --cmu ../shared/data/cmu --out data [--bodies N] [--frames N]
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
                                   [--clip-stride K] [--clip-frames C] [--category-power P]
+                                  [--seated-fraction F]
                                   [--body-cache DIR] [--only KIND [KIND ...]]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
@@ -41,7 +42,8 @@ def _build(args):
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
                          points=args.points, skin_samples=args.skin_samples,
                          skin_points=args.skin_points, clip_stride=args.clip_stride,
-                         clip_frames=args.clip_frames, category_power=args.category_power)
+                         clip_frames=args.clip_frames, category_power=args.category_power,
+                         seated_fraction=args.seated_fraction)
     motions, actor_hip_height = cmu_motions(args.cmu)
     summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
                     datasets=args.only)
@@ -113,6 +115,11 @@ def main(argv=None):
                                    "category's share is proportional to its frame count to "
                                    "this power (1: as the motions come; otherwise drawn with "
                                    "replacement; 0: every category alike; default 1)")
+    build_parser.add_argument("--seated-fraction", type=_finite_float,
+                              default=_DEFAULTS.seated_fraction,
+                              help="SKR frames (training and validation) whose legs are bent "
+                                   "as if seated or crouched (datasets.seated_legs), in [0, 1] "
+                                   "(default 0)")
     build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")

@@ -59,7 +59,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from minretarget.conventions import FPS, NUM_JOINTS
+from minretarget.conventions import (FORWARD_AXIS, FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS,
+                                     UP_AXIS)
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
@@ -74,7 +75,7 @@ CHUNK = 256
 
 
 # Config fields added after builds were made, with the value that builds the data as before.
-ADDED_CONFIG_FIELDS = {"category_power": 1.0}
+ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,10 +101,15 @@ class BuildConfig:
     # come, each drawn once before any twice; otherwise drawn with replacement; 0: every
     # category alike). README, Data and licences, says why.
     category_power: float = 1.0
+    # SKR frames (training and validation) whose legs are bent as if seated or crouched
+    # (``seated_legs``): the training motion has almost no sitting (577 of 53,326 frames).
+    seated_fraction: float = 0.0
 
     def __post_init__(self):
         if not np.isfinite(self.category_power):
             raise ValueError(f"category_power must be finite, got {self.category_power}")
+        if not 0.0 <= self.seated_fraction <= 1.0:
+            raise ValueError(f"seated_fraction must be in [0, 1], got {self.seated_fraction}")
 
     @property
     def val_bodies(self):
@@ -112,11 +118,19 @@ class BuildConfig:
 
 # ----------------------------------------------------------------------------- augmentation
 
+def _about(axis, angles):
+    """(...,) angles about the world axis 0, 1 or 2 (x, y, z), radians -> (..., 4) float32
+    quaternions (w, x, y, z)."""
+    half = np.asarray(angles, dtype=np.float64) / 2
+    quaternions = np.zeros(half.shape + (4,), np.float32)
+    quaternions[..., 0] = np.cos(half)
+    quaternions[..., 1 + axis] = np.sin(half)
+    return quaternions
+
+
 def heading_quaternions(angles):
     """(...,) angles about +Y, radians -> (..., 4) float32 quaternions (w, x, y, z)."""
-    half = np.asarray(angles, dtype=np.float64) / 2
-    zeros = np.zeros_like(half)
-    return np.stack([np.cos(half), zeros, np.sin(half), zeros], axis=-1).astype(np.float32)
+    return _about(UP_AXIS, angles)
 
 
 def augment(rotations, root, heading, shift):
@@ -199,6 +213,38 @@ def _draw_frames(total, count, rng):
     return np.concatenate([rng.permutation(total) for _ in range(rounds)])[:count]
 
 
+def seated_legs(rotations, rng):
+    """Both legs of each pose bent as if seated or crouched; the rest of the pose kept.
+
+    Per leg: the hip flexed forward within 15 degrees of an angle of 40 to 120 the two legs
+    share, spread outward -5 to 25 and twisted +-15 about the thigh; the knee flexed 40 to
+    140; the ankle turned to keep the sole near level (within +-40 degrees). Local rotations
+    are turns from the T-pose, whose left axis is +X, up +Y and forward +Z, so a flexion is a
+    turn about the parent's +X whatever the body's heading.
+
+    Args:
+        rotations: (N, J, 4) float32 local quaternions (w, x, y, z).
+        rng: numpy Generator.
+    Returns:
+        (N, J, 4) float32.
+    """
+    rotations = np.array(rotations, dtype=np.float32)
+    count = len(rotations)
+    hip_base = rng.uniform(np.radians(40), np.radians(120), count)
+    for side, outward in (("left", 1.0), ("right", -1.0)):
+        hip = hip_base + rng.uniform(-np.radians(15), np.radians(15), count)
+        spread = outward * rng.uniform(-np.radians(5), np.radians(25), count)
+        twist = rng.uniform(-np.radians(15), np.radians(15), count)
+        knee = rng.uniform(np.radians(40), np.radians(140), count)
+        ankle = np.clip(hip - knee, -np.radians(40), np.radians(40))
+        rotations[:, JOINT_INDEX[f"{side}_hip"]] = quaternion_multiply(
+            _about(FORWARD_AXIS, spread),
+            quaternion_multiply(_about(LEFT_AXIS, -hip), _about(UP_AXIS, twist)))
+        rotations[:, JOINT_INDEX[f"{side}_knee"]] = _about(LEFT_AXIS, knee)
+        rotations[:, JOINT_INDEX[f"{side}_ankle"]] = _about(LEFT_AXIS, ankle)
+    return rotations
+
+
 def _augmentation(rng, shape, max_shift):
     return rng.uniform(0, 2 * np.pi, shape), rng.uniform(-max_shift, max_shift, shape + (2,))
 
@@ -211,21 +257,26 @@ def _chunks(indices):
 # ----------------------------------------------------------------------------- datasets
 
 def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
-                category_power=1.0, progress=None):
+                category_power=1.0, seated_fraction=0.0, progress=None):
     """Static frames: random body, random frame (categories weighted by
-    ``BuildConfig.category_power``), augmented; see the module docstring."""
+    ``BuildConfig.category_power``; a ``seated_fraction`` of them with ``seated_legs``),
+    augmented; see the module docstring."""
     if category_power == 1.0:
         frame = _draw_frames(len(frames.root), count, rng)
     else:
         frame = rng.choice(len(frames.root), count, p=frames.category_weights(category_power))
     body = rng.integers(len(bodies), size=count).astype(np.int32)
     heading, shift = _augmentation(rng, (count,), max_shift)
+    drawn = frames.rotations[frame]
+    if seated_fraction > 0.0:       # no draws otherwise: default builds stay as they were
+        seated = np.flatnonzero(rng.random(count) < seated_fraction)
+        drawn[seated] = seated_legs(drawn[seated], rng)
     out = {"points": np.empty((count, points, 3), np.float32),
            "joints": np.empty((count, NUM_JOINTS, 3), np.float32), "body": body}
     for b, model in enumerate(bodies):
         scale = model.hip_height / actor_hip_height
         for chunk in _chunks(np.flatnonzero(body == b)):
-            rotations, root = augment(frames.rotations[frame[chunk]],
+            rotations, root = augment(drawn[chunk],
                                       frames.root[frame[chunk]] * scale,
                                       heading[chunk], shift[chunk])
             out["points"][chunk], out["joints"][chunk] = posed_clouds(model, rotations, root,
@@ -469,7 +520,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
             for kind, make, sizes in (
                     ("skr", skr_samples, dict(count=counts.get(f"skr_{split}"),
                                               points=config.points,
-                                              category_power=config.category_power)),
+                                              category_power=config.category_power,
+                                              seated_fraction=config.seated_fraction)),
                     ("skin", skin_samples, dict(count=counts.get(f"skin_{split}"),
                                                 points=config.skin_points)),
                     ("smrm", smrm_clips, dict(stride=config.clip_stride,
