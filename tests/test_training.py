@@ -7,11 +7,11 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from conftest import with_rest_pose  # noqa: E402
-from minretarget import Retargeter  # noqa: E402
-from minretarget.conventions import NUM_JOINTS, PARENTS  # noqa: E402
+from minretarget import Retargeter, metrics  # noqa: E402
+from minretarget.conventions import JOINT_INDEX, NUM_JOINTS, PARENTS  # noqa: E402
 from minretarget.weights import flatten_weights, load_weights, save_weights  # noqa: E402
 from training import kinematics  # noqa: E402
-from training.losses import rotation_distance, skin_loss  # noqa: E402
+from training.losses import foot_velocity_error, rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
 from training.analytic import analytic_rotations  # noqa: E402
 from training.train import (initial_models, main, retarget_ground_truth,  # noqa: E402
@@ -233,7 +233,8 @@ def test_denoiser_trains_on_weights_from_before_it(run, tmp_path):
     for key in set(before.files) - {"metadata", "config"}:
         np.testing.assert_array_equal(after[key], before[key], err_msg=key)
     header = (tmp_path / "denoised" / "denoise.csv").read_text().splitlines()[0].split(",")
-    assert {"val_mpjpe", "val_acc", "val_mpjpe_smoothed", "val_acc_smoothed"} <= set(header)
+    assert {"val_mpjpe", "val_acc", "val_foot_velocity", "val_mpjpe_smoothed",
+            "val_acc_smoothed", "val_foot_velocity_smoothed", "foot_velocity"} <= set(header)
 
 
 def test_denoiser_learns_from_the_skeletons_the_runtime_smooths(run):
@@ -359,6 +360,23 @@ def test_skin_loss_is_zero_for_the_true_weights():
     assert float(skin_loss(weights, points, posed, rotations, root, tpose)) < 1e-6
     uniform = torch.full_like(weights, 1 / NUM_JOINTS)
     assert float(skin_loss(uniform, points, posed, rotations, root, tpose)) > 1e-3
+
+
+def test_foot_velocity_error_counts_only_the_true_feet_ground_steps():
+    """Hand-computed: the left foot stays down, the right lifts 10 cm in the last frame; the
+    denoised left foot steps 1 cm sideways and back, the right slides 2 cm in the air and
+    1 cm up while down (the height is not a horizontal step)."""
+    left, right = JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]
+    truth = torch.zeros(1, 3, NUM_JOINTS, 3)
+    truth[0, 2, right, 1] = 0.1
+    denoised = truth.clone()
+    denoised[0, 1, left, 0] += 0.01
+    denoised[0, 1, right, 1] += 0.01
+    denoised[0, 2, right, 2] += 0.02
+    # contacts: left 0->1 and 1->2 (error 1 cm each), right 0->1 only (no horizontal error)
+    assert metrics.foot_contacts(truth[0].numpy()).sum() == 3
+    assert float(foot_velocity_error(denoised, truth)) == pytest.approx(0.02 / 3)
+    assert float(foot_velocity_error(truth, truth)) == 0.0
 
 
 def test_rotation_distance_treats_q_and_minus_q_alike():

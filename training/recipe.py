@@ -40,6 +40,7 @@ class DenoiseStage:
     learning_rate: float = 1e-3
     window: int = 64             # frames of a training window (random, inside one trial)
     acceleration: float = 2.0    # weight of the acceleration error against the joint error
+    foot_velocity: float = 0.0   # weight of the feet's velocity error on ground contacts
     eval_every: int = 250
 
 

@@ -39,8 +39,8 @@ from minretarget.weights import load_weights
 from training.export import (export_weights, import_weights, refine_runtime_weights,
                              skr_runtime_weights)
 from training.kinematics import forward_kinematics
-from training.losses import (denoise_losses, discriminator_loss, skin_loss, skr_loss,
-                             smrm_losses)
+from training.losses import (denoise_losses, discriminator_loss, foot_velocity_error,
+                             skin_loss, skr_loss, smrm_losses)
 from training.models import (JointRefiner, MotionDiscriminator, MotionRetargeter,
                              SkeletonDenoiser, SkeletonRegressor, SkinningField)
 from training.models.denoise import mirror_image
@@ -377,9 +377,10 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
                   skr=None, refine=None):
     """The skeleton denoiser on the smoothed skeletons of the trained SKR (and refiner) of
     whole trials (``sequences_*.npz``, computed once, as the runtime sees them): the mean
-    joint error plus ``acceleration`` times the mean acceleration error, against the true
-    joints, on random windows; half of them mirrored (left and right swapped). Validation
-    scores it as the runtime runs it, mirror-averaged."""
+    joint error plus ``acceleration`` times the mean acceleration error plus
+    ``foot_velocity`` times the feet's velocity error on the true ground contacts, against the
+    true joints, on random windows; half of them mirrored (left and right swapped).
+    Validation scores it as the runtime runs it, mirror-averaged."""
     stage_recipe = recipe.denoise
     skr_weights = skr_runtime_weights(skr.cpu().eval())
     refine_weights = None if refine is None else refine_runtime_weights(refine.cpu().eval())
@@ -410,29 +411,33 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
         mirrored = (torch.rand(len(trial), generator=stage.generator) < 0.5).to(device)
         skeleton = torch.where(mirrored[:, None, None, None], mirror_image(skeleton), skeleton)
         joints = torch.where(mirrored[:, None, None, None], mirror_image(joints), joints)
-        position, acceleration = denoise_losses(model(skeleton)[0], joints)
-        loss = position + stage_recipe.acceleration * acceleration
+        denoised = model(skeleton)[0]
+        position, acceleration = denoise_losses(denoised, joints)
+        feet = foot_velocity_error(denoised, joints)
+        loss = (position + stage_recipe.acceleration * acceleration
+                + stage_recipe.foot_velocity * feet)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         return {"loss": loss.item(), "position": position.item(),
-                "acceleration": acceleration.item()}
+                "acceleration": acceleration.item(), "foot_velocity": feet.item()}
 
     def evaluate():
         """Each validation trial whole, from a stream's start, as the runtime plays it."""
-        totals, frames = torch.zeros(4), 0
+        def scores(x, joints):
+            return [*map(float, denoise_losses(x, joints)), float(foot_velocity_error(x, joints))]
+        totals, frames = torch.zeros(6), 0
         bounds = val["starts"].cpu().tolist()
         for a, b in zip(bounds[:-1], bounds[1:]):
             if b - a < 3:
                 continue
             skeleton, joints = val["skeleton"][a:b][None], val["joints"][a:b][None]
             denoised = model.mirror_averaged(skeleton)[0]      # as the runtime runs it
-            totals += (b - a) * torch.tensor([*map(float, denoise_losses(denoised, joints)),
-                                              *map(float, denoise_losses(skeleton, joints))])
+            totals += (b - a) * torch.tensor(scores(denoised, joints) + scores(skeleton, joints))
             frames += b - a
         totals /= max(frames, 1)
-        return dict(zip(("val_mpjpe", "val_acc", "val_mpjpe_smoothed", "val_acc_smoothed"),
-                        totals.tolist()))
+        return dict(zip(("val_mpjpe", "val_acc", "val_foot_velocity", "val_mpjpe_smoothed",
+                         "val_acc_smoothed", "val_foot_velocity_smoothed"), totals.tolist()))
 
     return model, stage.run(train_step, evaluate, resume, stop_at)
 
