@@ -10,7 +10,8 @@ from minretarget.bvh import parse_bvh, read_bvh, resample, world_transforms
 from minretarget.conventions import JOINT_INDEX
 from minretarget.kinematics import forward_kinematics
 from minretarget.skeletons import CMU_BONES, canonical_world
-from training.data.cmu import (LEAD_IN_FRAMES, capture_fps, cmu_tpose_joints, list_trials,
+from training.data.cmu import (BROKEN_FLOOR_HEIGHT, BROKEN_TRIALS, LEAD_IN_FRAMES, Motion,
+                               capture_fps, cmu_tpose_joints, floor_height, list_trials,
                                load_motion, local_quaternions, tpose_joints)
 
 CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu"
@@ -127,6 +128,21 @@ def test_tpose_axes_and_floor(synthetic):
     check_tpose_axes(tpose_joints(synthetic))
 
 
+def test_floor_height_finds_a_body_sunk_through_the_floor(synthetic):
+    """A T-pose standing on the floor has its balls of the feet at 0.025 m; one frame in a
+    hundred sunk 0.8 m (a glitch) does not move the 2nd percentile, all of them sunk does."""
+    tpose = tpose_joints(synthetic)
+    rotations = np.tile(np.array([1, 0, 0, 0], np.float32), (100, len(tpose), 1))
+    root = np.tile(tpose[0], (100, 1))
+    standing = Motion("t", rotations, root, 30, "walk", 120.0)
+    assert floor_height(standing, tpose) == pytest.approx(0.025, abs=1e-5)
+    glitch = root.copy()
+    glitch[40, 1] -= 0.8
+    assert floor_height(replace(standing, root=glitch), tpose) == pytest.approx(0.025, abs=1e-5)
+    sunk = floor_height(replace(standing, root=root - [0, 0.8, 0]), tpose)
+    assert sunk == pytest.approx(-0.775, abs=1e-5) and sunk < BROKEN_FLOOR_HEIGHT
+
+
 def test_load_motion_drops_the_lead_in_and_resamples(tmp_path):
     path = tmp_path / "mine.bvh"
     path.write_text(synthetic_bvh_text(frames=LEAD_IN_FRAMES + 9))
@@ -164,9 +180,46 @@ def test_list_trials_names_categories_and_splits(tmp_path):
     assert capture_fps(tmp_path / "elsewhere.bvh") is None
 
 
+def test_list_trials_leaves_out_broken_captures_unless_asked(tmp_path):
+    for rel in ("cgspeed/09/09_10.bvh.gz", "cgspeed/09/09_11.bvh.gz", "cgspeed/07/07_12.bvh.gz"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(gzip.compress(b""))
+    (tmp_path / "cgspeed" / "CMU-INDEX.md").write_text("09_10  run\n09_11  run\n07_12  walk\n")
+    assert [t.name for t in list_trials(tmp_path)] == ["09_11"]
+    assert [t.name for t in list_trials(tmp_path, include_broken=True)] == [
+        "07_12", "09_10", "09_11"]
+
+
 # ----------------------------------------------------------------------------- real data
 
 needs_cmu = pytest.mark.skipif(not WALK.exists(), reason=f"CMU data not found at {CMU_DIR}")
+
+
+@needs_cmu
+def test_the_broken_trials_are_the_sunken_ones():
+    """Each listed trial sinks through the floor; its neighbours (same subject, same session)
+    stand on it."""
+    trials = {t.name: t for t in list_trials(CMU_DIR, include_broken=True)}
+    tpose = cmu_tpose_joints(WALK)
+    for name in sorted(BROKEN_TRIALS) + ["01_08", "07_11", "09_11"]:
+        height = floor_height(load_motion(trials[name].path), tpose)
+        assert (height < BROKEN_FLOOR_HEIGHT) == (name in BROKEN_TRIALS), (name, height)
+        assert name in BROKEN_TRIALS or abs(height) < 0.2, (name, height)
+
+
+@needs_cmu
+def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seeds():
+    """Each validation trial keeps its place k in the draw over every trial (its bodies and
+    seed); the places skipped are the broken trials'."""
+    from training.data.datasets import VALIDATION_SUBJECTS, validation_sequences
+    drawn = {build.args[1]: trial.name for trial, build in validation_sequences(CMU_DIR)}
+    assert len(drawn) == 12 and not set(drawn.values()) & BROKEN_TRIALS
+    every = [t for t in list_trials(CMU_DIR, include_broken=True)
+             if t.subject in VALIDATION_SUBJECTS]
+    order = np.random.default_rng(0).permutation(len(every))
+    for k in range(max(drawn) + 1):
+        name = every[order[k]].name
+        assert drawn.get(k, name) == name and (k in drawn) != (name in BROKEN_TRIALS), k
 
 
 @needs_cmu

@@ -72,7 +72,7 @@ def _build(args):
 def _preview(args):
     from . import cmu
     from .preview import render
-    trials = {t.name: t for t in cmu.list_trials(args.cmu)}
+    trials = {t.name: t for t in cmu.list_trials(args.cmu, include_broken=True)}
     if args.trial not in trials:
         sys.exit(f"no trial {args.trial!r} under {args.cmu}")
     motion = cmu.load_motion(trials[args.trial].path)

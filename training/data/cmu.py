@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from minretarget.bvh import read_bvh, resample
-from minretarget.conventions import FPS, JOINT_INDEX, PARENTS
-from minretarget.kinematics import matrix_to_quaternion
+from minretarget.conventions import FPS, JOINT_INDEX, PARENTS, UP_AXIS
+from minretarget.kinematics import forward_kinematics, matrix_to_quaternion
 from minretarget.skeletons import canonical_world
 
 CENTIMETRES = 0.01
@@ -54,6 +54,19 @@ SOURCE_FPS = {"cgspeed": 120, "salsa": 60, "martial": 120, "indian": 120}
 TEST_SUBJECTS = frozenset({"08", "11", "12", "14", "indian"})
 
 LEAD_IN_FRAMES = 8       # conversion artefacts at the start of every file (module docstring)
+
+# Broken captures, left out of training and validation (``list_trials``; the test split has
+# none): their bodies sink through the floor, which every other trial stands on. Over each
+# trial the lowest of the feet and ankles has a 2nd-percentile height (``floor_height``) of
+# -0.83 (07_12), -0.76 (01_14) and -0.72 m (09_10), against -0.19 to +0.08 m (median +0.03)
+# in the 182 others. The poses are off too: 09_10 ("run") has its ankles a median 1.53 m apart
+# sideways and its pelvis 0.41 m above its lowest foot (0.83 standing), and through the
+# runtime its source skeleton was 0.22 m off (the other runs' 0.03 to 0.04) and its 32 frames
+# made a third of the validation MPJPE; 07_12 ("brisk walk") has its ankles 0.30 m apart
+# (07_01, a walk of the same session: 0.06); 01_14 (a playground climb) has its pelvis down to
+# 0.44 m below the floor.
+BROKEN_TRIALS = frozenset({"01_14", "07_12", "09_10"})
+BROKEN_FLOOR_HEIGHT = -0.3    # metres: ``floor_height`` below this marks a broken capture
 
 # Ball-of-foot (foot End Site) height above the floor with the foot flat: the median, over the
 # files, of the 2nd percentile of the lower foot End Site's height is 0.027 m.
@@ -101,8 +114,9 @@ class Trial:
 
 # ----------------------------------------------------------------------------- the collection
 
-def list_trials(cmu_dir):
-    """Every ``.bvh.gz`` trial present under ``cmu_dir``, sorted by path.
+def list_trials(cmu_dir, include_broken=False):
+    """Every ``.bvh.gz`` trial present under ``cmu_dir``, sorted by path, without the
+    ``BROKEN_TRIALS`` unless ``include_broken``.
 
     Returns:
         list of Trial; subject is "NN" for cgspeed/NN/NN_MM and the style for aclstm/<style>.
@@ -111,6 +125,8 @@ def list_trials(cmu_dir):
     paths = sorted(cmu_dir.glob("cgspeed/*/*.bvh.gz")) + sorted(cmu_dir.glob("aclstm/*/*.bvh.gz"))
     trials = []
     for path in paths:
+        if not include_broken and trial_name(path) in BROKEN_TRIALS:
+            continue
         subject = path.parent.name
         trials.append(Trial(name=trial_name(path), path=path, subject=subject,
                             category=trial_category(path),
@@ -209,6 +225,19 @@ def tpose_joints(bvh):
     joints[:, 1] += _BALL_HEIGHT - joints[[JOINT_INDEX["left_foot"],
                                            JOINT_INDEX["right_foot"]], 1].min()
     return joints.astype(np.float32)
+
+
+def floor_height(motion, tpose):
+    """The 2nd percentile over a motion's frames of its lowest foot or ankle's height, metres:
+    about +0.03 for a capture on the floor, below ``BROKEN_FLOOR_HEIGHT`` for a broken one.
+
+    Args:
+        motion: Motion. tpose: (J, 3) its actor's T-pose joints (``cmu_tpose_joints``).
+    """
+    feet = [JOINT_INDEX[name] for name in ("left_ankle", "right_ankle", "left_foot",
+                                           "right_foot")]
+    joints = forward_kinematics(motion.rotations, motion.root, tpose)[0]     # (T, J, 3)
+    return float(np.percentile(joints[:, feet, UP_AXIS].min(axis=1), 2))
 
 
 def cmu_tpose_joints(path):

@@ -65,7 +65,7 @@ from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
                      sampled_body_seeds)
-from .cmu import cmu_tpose_joints, list_trials, load_motion
+from .cmu import BROKEN_TRIALS, cmu_tpose_joints, list_trials, load_motion
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 # Training subjects held out for validation (basketball and running; about 3,000 frames).
@@ -418,11 +418,14 @@ def benchmark_sequence(motion, source, target, points, actor_hip_height, rng, pr
 
 def validation_sequences(cmu_dir, trials=12, max_frames=240, points=2048):
     """Benchmark sequences from validation motion, never the test split: ``trials`` trials of
-    the held-out training subjects (VALIDATION_SUBJECTS), at most ``max_frames`` frames each,
+    the held-out training subjects (VALIDATION_SUBJECTS; not the broken ``cmu.BROKEN_TRIALS``,
+    whose place the next trial drawn takes), at most ``max_frames`` frames each,
     on held-out validation bodies (source and target differ), sampled as the test benchmark
     is. Yields (trial, build): ``build()`` makes the sequence (seconds of work, so a caller
     with a cache can skip it); the same every time (fixed seeds)."""
-    chosen = [t for t in list_trials(cmu_dir) if t.subject in VALIDATION_SUBJECTS]
+    # drawn from every trial, broken ones then skipped: the others keep their bodies and seeds
+    chosen = [t for t in list_trials(cmu_dir, include_broken=True)
+              if t.subject in VALIDATION_SUBJECTS]
     actor_hip_height = float(cmu_tpose_joints(chosen[0].path)[0, 1])
     bodies = [body_from_seed(seed) for seed in sampled_body_seeds(15, "val")]
 
@@ -433,8 +436,10 @@ def validation_sequences(cmu_dir, trials=12, max_frames=240, points=2048):
         return benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
                                   points, actor_hip_height, np.random.default_rng([0, k]))
 
-    for k, index in enumerate(np.random.default_rng(0).permutation(len(chosen))[:trials]):
-        yield chosen[index], functools.partial(build, chosen[index], k)
+    order = np.random.default_rng(0).permutation(len(chosen))
+    kept = [(k, chosen[i]) for k, i in enumerate(order) if chosen[i].name not in BROKEN_TRIALS]
+    for k, trial in kept[:trials]:
+        yield trial, functools.partial(build, trial, k)
 
 
 # ----------------------------------------------------------------------------- build
