@@ -63,8 +63,8 @@ LEAD_IN_FRAMES = 8       # conversion artefacts at the start of every file (modu
 # sideways and its pelvis 0.41 m above its lowest foot (0.83 standing), and through the
 # runtime its source skeleton was 0.22 m off (the other runs' 0.03 to 0.04) and its 32 frames
 # made a third of the validation MPJPE; 07_12 ("brisk walk") has its ankles 0.30 m apart
-# (07_01, a walk of the same session: 0.06); 01_14 (a playground climb) has its pelvis down to
-# 0.44 m below the floor.
+# sideways (07_01, a walk of the same session: 0.06); 01_14 (a playground climb) has its
+# pelvis down to 0.44 m below the floor.
 BROKEN_TRIALS = frozenset({"01_14", "07_12", "09_10"})
 BROKEN_FLOOR_HEIGHT = -0.3    # metres: ``floor_height`` below this marks a broken capture
 
