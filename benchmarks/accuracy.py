@@ -293,7 +293,7 @@ def main(argv=None):
     parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data, to build DIR")
     parser.add_argument("--validation", action="store_true",
                         help="score validation trials instead (training.data.datasets."
-                             "validation_sequences: 12 trials, 1,354 frames), to choose "
+                             "validation_sequences: 12 trials, 1,396 frames), to choose "
                              "between weights without looking at the test split")
     parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS, default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "
