@@ -52,6 +52,8 @@ sequences (``paired_difference``), and on how many sequences the model is better
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
+--dances: on dance and martial-arts trials of the training split played by held-out bodies,
+the motion the validation subjects lack (the networks trained on it, on other bodies).
 """
 import argparse
 import functools
@@ -295,6 +297,10 @@ def main(argv=None):
                         help="score validation trials instead (training.data.datasets."
                              "validation_sequences: 12 trials, 1,396 frames), to choose "
                              "between weights without looking at the test split")
+    parser.add_argument("--dances", action="store_true",
+                        help="score 16 dance and martial-arts trials of the training split on "
+                             "held-out validation bodies instead (training.data.datasets."
+                             "dance_sequences: 7,561 frames): motion validation lacks")
     parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS, default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "
                         "but the foot-leash rows; model always)")
@@ -316,14 +322,18 @@ def main(argv=None):
         return
     wanted = ["model"] + [row for row in args.rows if row != "model"]
     test_dir = Path(args.data) / "test"
-    if not args.validation and not test_dir.is_dir():
+    if args.validation and args.dances:
+        parser.error("--validation and --dances are two different sets: give one")
+    split = "validation" if args.validation else "training dances" if args.dances else "test"
+    if split == "test" and not test_dir.is_dir():
         print(f"{test_dir} is absent: building the data first", flush=True)
         subprocess.run([sys.executable, "-m", "training.data", "build", "--cmu", args.cmu,
                         "--out", args.data], check=True)
     weights = load_weights(args.weights)
-    if args.validation:
-        from training.data.datasets import validation_sequences
-        loaders = [build for _, build in validation_sequences(args.cmu)]
+    if split != "test":
+        from training.data.datasets import dance_sequences, validation_sequences
+        held_out = validation_sequences if args.validation else dance_sequences
+        loaders = [build for _, build in held_out(args.cmu)]
     else:
         paths, frames = select_sequences(sorted(test_dir.glob("*.npz")), args.quick)
         loaders = [functools.partial(load_sequence, path, frames) for path in paths]
@@ -342,7 +352,7 @@ def main(argv=None):
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
 
     seconds = time.perf_counter() - started
-    summary = summarize(results, "validation" if args.validation else "test")
+    summary = summarize(results, split)
     text = summary.pop("text")
     total_frames = summary["frames"]
     print(text)

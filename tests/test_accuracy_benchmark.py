@@ -60,3 +60,9 @@ def test_from_json_prints_a_saved_run_and_adds_its_tables(tmp_path, capsys):
     comparison = written["paired_differences"]["model minus analytic"]
     assert comparison["PA-MPJPE"]["difference"] == pytest.approx(0.0)
     assert written["feet_on_truth_contacts"]["all"]["model"] == pytest.approx(0.5)
+
+
+def test_validation_and_dances_are_not_asked_together(capsys):
+    with pytest.raises(SystemExit) as stop:
+        accuracy.main(["--validation", "--dances"])
+    assert stop.value.code == 2 and "--dances" in capsys.readouterr().err

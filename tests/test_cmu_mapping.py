@@ -223,6 +223,17 @@ def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seed
 
 
 @needs_cmu
+def test_the_dance_set_is_training_motion_on_validation_bodies():
+    from training.data.datasets import DANCE_TRIALS, VALIDATION_SUBJECTS, dance_sequences
+    trials = dance_sequences(CMU_DIR)
+    assert [trial.name for trial, _ in trials] == list(DANCE_TRIALS)
+    assert [build.args[1] for _, build in trials] == list(range(len(DANCE_TRIALS)))
+    for trial, _ in trials:
+        assert trial.split == "train" and trial.subject not in VALIDATION_SUBJECTS
+        assert trial.category in ("dance", "salsa", "martial") and trial.name not in BROKEN_TRIALS
+
+
+@needs_cmu
 def test_real_walk_maps_exactly_and_walks_forward():
     motion = load_motion(WALK)
     assert motion.category == "walk" and motion.source_fps == 120

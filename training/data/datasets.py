@@ -419,27 +419,50 @@ def benchmark_sequence(motion, source, target, points, actor_hip_height, rng, pr
 def validation_sequences(cmu_dir, trials=12, max_frames=240, points=2048):
     """Benchmark sequences from validation motion, never the test split: ``trials`` trials of
     the held-out training subjects (VALIDATION_SUBJECTS; not the broken ``cmu.BROKEN_TRIALS``,
-    whose place the next trial drawn takes), at most ``max_frames`` frames each,
-    on held-out validation bodies (source and target differ), sampled as the test benchmark
-    is. Yields (trial, build): ``build()`` makes the sequence (seconds of work, so a caller
-    with a cache can skip it); the same every time (fixed seeds)."""
+    whose place the next trial drawn takes), at most ``max_frames`` frames each, on held-out
+    validation bodies (source and target differ), sampled as the test benchmark is. Returns
+    (trial, build) pairs: ``build()`` makes the sequence (seconds of work, so a caller with a
+    cache can skip it); the same every time (fixed seeds)."""
     # drawn from every trial, broken ones then skipped: the others keep their bodies and seeds
     chosen = [t for t in list_trials(cmu_dir, include_broken=True)
               if t.subject in VALIDATION_SUBJECTS]
-    actor_hip_height = float(cmu_tpose_joints(chosen[0].path)[0, 1])
-    bodies = [body_from_seed(seed) for seed in sampled_body_seeds(15, "val")]
+    order = np.random.default_rng(0).permutation(len(chosen))
+    kept = [(k, chosen[i]) for k, i in enumerate(order) if chosen[i].name not in BROKEN_TRIALS]
+    return _on_validation_bodies(kept[:trials], max_frames, points, seed=0)
+
+
+# Dance and martial-arts trials of the training split (16 of its 55 dance, salsa and martial
+# trials; at most 600 frames each, 7,561 frames): the validation subjects have no such motion,
+# where the test set's feet slide most. SKR and the rest trained on these motions, on other
+# bodies, so they show how a change carries to held-out bodies, not to new motion.
+DANCE_TRIALS = ("05_02", "05_06", "05_08", "05_12", "05_14", "05_18", "martial_03",
+                "martial_06", "martial_08", "salsa_01", "salsa_12", "salsa_16", "salsa_20",
+                "salsa_21", "salsa_25", "salsa_28")
+
+
+def dance_sequences(cmu_dir, max_frames=600, points=2048):
+    """Benchmark sequences of ``DANCE_TRIALS`` on held-out validation bodies, as
+    ``validation_sequences`` makes them (its seeds offset); (trial, build) pairs likewise."""
+    trials = {t.name: t for t in list_trials(cmu_dir)}
+    return _on_validation_bodies(list(enumerate(trials[name] for name in DANCE_TRIALS)),
+                                 max_frames, points, seed=1)
+
+
+def _on_validation_bodies(numbered_trials, max_frames, points, seed):
+    """(k, Trial) pairs -> (trial, build) pairs, ``build()`` making trial k's benchmark
+    sequence (at most ``max_frames`` frames) with validation bodies 2k and 2k + 1 (mod 15) as
+    source and target and its randomness seeded (seed, k)."""
+    actor_hip_height = float(cmu_tpose_joints(numbered_trials[0][1].path)[0, 1])
+    bodies = [body_from_seed(s) for s in sampled_body_seeds(15, "val")]
 
     def build(trial, k):
         motion = load_motion(trial.path, fps=FPS)
         motion = dataclasses.replace(motion, rotations=motion.rotations[:max_frames],
                                      root=motion.root[:max_frames])
         return benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
-                                  points, actor_hip_height, np.random.default_rng([0, k]))
+                                  points, actor_hip_height, np.random.default_rng([seed, k]))
 
-    order = np.random.default_rng(0).permutation(len(chosen))
-    kept = [(k, chosen[i]) for k, i in enumerate(order) if chosen[i].name not in BROKEN_TRIALS]
-    for k, trial in kept[:trials]:
-        yield trial, functools.partial(build, trial, k)
+    return [(trial, functools.partial(build, trial, k)) for k, trial in numbered_trials]
 
 
 # ----------------------------------------------------------------------------- build
