@@ -1,6 +1,6 @@
 """Accuracy of the runtime on the test benchmark (DESIGN.md, "Accuracy protocol").
 
-    python benchmarks/accuracy.py [--quick | --validation] [--rows ROW ...] [--weights FILE]
+    python benchmarks/accuracy.py [--quick | --validation | --dances] [--rows ROW ...] [--weights FILE]
                                   [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md]
 
@@ -289,15 +289,16 @@ def select_sequences(paths, quick):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a fixed subset, about 3 minutes")
+    which = parser.add_mutually_exclusive_group()    # one set of sequences a run
+    which.add_argument("--quick", action="store_true", help="a fixed subset, about 3 minutes")
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data, to build DIR")
-    parser.add_argument("--validation", action="store_true",
+    which.add_argument("--validation", action="store_true",
                         help="score validation trials instead (training.data.datasets."
                              "validation_sequences: 12 trials, 1,396 frames), to choose "
                              "between weights without looking at the test split")
-    parser.add_argument("--dances", action="store_true",
+    which.add_argument("--dances", action="store_true",
                         help="score 16 dance and martial-arts trials of the training split on "
                              "held-out validation bodies instead (training.data.datasets."
                              "dance_sequences: 7,561 frames): motion validation lacks")
@@ -322,8 +323,6 @@ def main(argv=None):
         return
     wanted = ["model"] + [row for row in args.rows if row != "model"]
     test_dir = Path(args.data) / "test"
-    if args.validation and args.dances:
-        parser.error("--validation and --dances are two different sets: give one")
     split = "validation" if args.validation else "training dances" if args.dances else "test"
     if split == "test" and not test_dir.is_dir():
         print(f"{test_dir} is absent: building the data first", flush=True)

@@ -62,7 +62,9 @@ def test_from_json_prints_a_saved_run_and_adds_its_tables(tmp_path, capsys):
     assert written["feet_on_truth_contacts"]["all"]["model"] == pytest.approx(0.5)
 
 
-def test_validation_and_dances_are_not_asked_together(capsys):
+@pytest.mark.parametrize("pair", [["--validation", "--dances"], ["--quick", "--dances"],
+                                  ["--quick", "--validation"]])
+def test_one_set_of_sequences_a_run(pair, capsys):
     with pytest.raises(SystemExit) as stop:
-        accuracy.main(["--validation", "--dances"])
-    assert stop.value.code == 2 and "--dances" in capsys.readouterr().err
+        accuracy.main(pair)
+    assert stop.value.code == 2 and "not allowed with argument" in capsys.readouterr().err

@@ -363,19 +363,24 @@ def test_skin_loss_is_zero_for_the_true_weights():
 
 
 def test_foot_velocity_error_counts_only_the_true_feet_ground_steps():
-    """Hand-computed: the left foot stays down, the right lifts 10 cm in the last frame; the
-    denoised left foot steps 1 cm sideways and back, the right slides 2 cm in the air and
-    1 cm up while down (the height is not a horizontal step)."""
+    """Hand-computed, two clips on floors 1 m apart (contact is judged per clip): the left foot
+    stays down, the right lifts 10 cm in the last frame; the denoised left foot steps 1 cm (3 cm
+    in the second clip) sideways and back while lifted 5 cm (contact is the truth's, not the denoised), the right
+    slides 2 cm in the air and 1 cm up while down (the height is not a horizontal step)."""
     left, right = JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]
-    truth = torch.zeros(1, 3, NUM_JOINTS, 3)
-    truth[0, 2, right, 1] = 0.1
+    truth = torch.zeros(2, 3, NUM_JOINTS, 3)
+    truth[1, :, :, 1] += 1.0
+    truth[:, 2, right, 1] += 0.1
     denoised = truth.clone()
-    denoised[0, 1, left, 0] += 0.01
-    denoised[0, 1, right, 1] += 0.01
-    denoised[0, 2, right, 2] += 0.02
-    # contacts: left 0->1 and 1->2 (error 1 cm each), right 0->1 only (no horizontal error)
-    assert metrics.foot_contacts(truth[0].numpy()).sum() == 3
-    assert float(foot_velocity_error(denoised, truth)) == pytest.approx(0.02 / 3)
+    denoised[:, 1, left, 0] += torch.tensor([0.01, 0.03])
+    denoised[:, 1, left, 1] += 0.05
+    denoised[:, 1, right, 1] += 0.01
+    denoised[:, 2, right, 2] += 0.02
+    # contacts per clip: left 0->1 and 1->2 (error 1 cm each in the first clip, 3 cm in the
+    # second), right 0->1 only (no error)
+    for clip in truth:
+        assert metrics.foot_contacts(clip.numpy()).sum() == 3
+    assert float(foot_velocity_error(denoised, truth)) == pytest.approx(0.08 / 6)
     assert float(foot_velocity_error(truth, truth)) == 0.0
 
 
