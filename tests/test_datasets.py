@@ -370,3 +370,23 @@ def test_augment_turns_about_y_and_shifts():
                                turn @ quaternion_to_matrix(rotations[:, 0]), atol=1e-5)
     expected = np.einsum("nab,nb->na", turn, root) + np.insert(shift, 1, 0.0, axis=1)
     np.testing.assert_allclose(moved, expected, atol=1e-5)
+
+
+def test_broken_captures_need_include_broken_and_old_builds_count_as_having_them(tmp_path):
+    """Motions holding a broken capture are refused unless the config says so; a partial build
+    into a folder made before the field existed (whose data kept them) is refused by default
+    and accepted with include_broken=True."""
+    broken = {**MOTIONS, "train": MOTIONS["train"] + [_walk("07_12", 30)]}
+    with pytest.raises(ValueError, match=r"broken captures \['07_12'\]"):
+        build(broken, ACTOR_HIP_HEIGHT, tmp_path / "a", TINY, show_progress=False)
+    old_config = {k: v for k, v in dataclasses.asdict(TINY).items()
+                  if k not in ("include_broken", "seated_fraction")}
+    (tmp_path / "manifest.json").write_text(json.dumps({"config": old_config}))
+    with pytest.raises(ValueError, match=r"differs in \['include_broken'\]"):
+        build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, TINY, show_progress=False,
+              datasets=("skin",))
+    kept = BuildConfig(**{**TINY.__dict__, "include_broken": True})
+    with pytest.raises(ValueError, match="another build config") as refused:
+        build(broken, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**kept.__dict__, "seed": 9}),
+              show_progress=False, datasets=("skin",))
+    assert "include_broken" not in str(refused.value).split("differs in")[1]

@@ -43,8 +43,9 @@ def _build(args):
                          points=args.points, skin_samples=args.skin_samples,
                          skin_points=args.skin_points, clip_stride=args.clip_stride,
                          clip_frames=args.clip_frames, category_power=args.category_power,
-                         seated_fraction=args.seated_fraction)
-    motions, actor_hip_height = cmu_motions(args.cmu)
+                         seated_fraction=args.seated_fraction,
+                         include_broken=args.include_broken)
+    motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
     summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
                     datasets=args.only)
     counts = summary["counts"]
@@ -120,6 +121,9 @@ def main(argv=None):
                               help="SKR frames (training and validation) whose legs are bent "
                                    "as if seated or crouched (datasets.seated_legs), in [0, 1] "
                                    "(default 0)")
+    build_parser.add_argument("--include-broken", action="store_true",
+                              help="keep the broken captures (cmu.BROKEN_TRIALS), as the "
+                                   "shipped weights' data did")
     build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")

@@ -75,7 +75,8 @@ CHUNK = 256
 
 
 # Config fields added after builds were made, with the value that builds the data as before.
-ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0}
+# (Builds before the broken captures were found had them: include_broken True.)
+ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0, "include_broken": True}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,6 +105,9 @@ class BuildConfig:
     # SKR frames (training and validation) whose legs are bent as if seated or crouched
     # (``seated_legs``): the training motion has almost no sitting (577 of 53,326 frames).
     seated_fraction: float = 0.0
+    # Keep the broken captures (``cmu.BROKEN_TRIALS``: bodies sink through the floor), as the
+    # data of the shipped weights did; ``build`` refuses motions that contradict it.
+    include_broken: bool = False
 
     def __post_init__(self):
         if not np.isfinite(self.category_power):
@@ -188,15 +192,16 @@ class _Frames:
                               ).astype(np.int64)
 
 
-def cmu_motions(cmu_dir, show_progress=True):
-    """Load every CMU trial at 30 fps, split for training, validation and test.
+def cmu_motions(cmu_dir, show_progress=True, include_broken=False):
+    """Load every CMU trial at 30 fps (the broken ones, ``cmu.BROKEN_TRIALS``, only if
+    ``include_broken``), split for training, validation and test.
 
     Returns:
         motions: {'train', 'val', 'test'}: lists of ``cmu.Motion``; 'test' is DESIGN.md's test
             split, 'val' the training subjects in ``VALIDATION_SUBJECTS``.
         actor_hip_height: the CMU actor's T-pose pelvis height above the floor, metres.
     """
-    trials = list_trials(cmu_dir)
+    trials = list_trials(cmu_dir, include_broken)
     if not trials:
         raise FileNotFoundError(f"no CMU trial (*.bvh.gz) under {cmu_dir}")
     motions = {"train": [], "val": [], "test": []}
@@ -303,8 +308,8 @@ def skr_tpose_samples(bodies, count, points, rng, max_shift, progress=None):
         chunk = np.flatnonzero(body == b)
         if not len(chunk):
             continue
-        rotations, root = augment(identity[chunk], np.broadcast_to(model.joints[0], (len(chunk), 3)),
-                                  heading[chunk], shift[chunk])
+        pelvis = np.broadcast_to(model.joints[0], (len(chunk), 3))
+        rotations, root = augment(identity[chunk], pelvis, heading[chunk], shift[chunk])
         vertices, joints = pose_body(model, rotations, root)
         sampled = sample_point_clouds(vertices, model.faces, points, rng)
         for i, n in enumerate(chunk):
@@ -444,6 +449,9 @@ def dance_sequences(cmu_dir, max_frames=600, points=2048):
     """Benchmark sequences of ``DANCE_TRIALS`` on held-out validation bodies, as
     ``validation_sequences`` makes them (its seeds offset); (trial, build) pairs likewise."""
     trials = {t.name: t for t in list_trials(cmu_dir)}
+    missing = [name for name in DANCE_TRIALS if name not in trials]
+    if missing:
+        raise FileNotFoundError(f"dance trials {missing} not found under {cmu_dir}")
     return _on_validation_bodies(list(enumerate(trials[name] for name in DANCE_TRIALS)),
                                  max_frames, points, seed=1)
 
@@ -507,6 +515,11 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     old = json.loads(previous.read_text()) if partial else {}
     # A manifest from before a config field existed was built as that field's default does.
     recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else {}
+    broken = sorted(m.name for split in motions.values() for m in split
+                    if m.name in BROKEN_TRIALS)
+    if broken and not config.include_broken:
+        raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS); "
+                         "leave them out or build with include_broken=True")
     wanted = dataclasses.asdict(config)
     if partial and recorded != wanted:
         differing = sorted(k for k, v in wanted.items() if recorded.get(k) != v)
