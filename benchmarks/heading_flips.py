@@ -1,4 +1,4 @@
-"""How often the source skeleton faces the wrong way, on the test benchmark.
+"""How often the source skeleton faces the wrong way or has its legs swapped, on the test set.
 
     python benchmarks/heading_flips.py [--data DIR] [--weights FILE] [--json OUT.json]
 
@@ -13,6 +13,12 @@ facing check, ``minretarget.facing``, the smoothing and the denoiser), with the 
 without. With the toes' mean distance from the truth's (both relative to the pelvis) in those
 frames and in the others, and the largest turn the ground truth makes between two frames (a
 body turning faster than 90 degrees a frame would spin at over 7 turns a second at 30 fps).
+
+It also counts, among the frames facing the right way, those whose legs are read swapped:
+where the dancer crosses one foot over the other, SKR puts each foot on its own side, so the
+planted foot jumps to the swinging one's place and back (``legs_swapped``: the knees, ankles
+and toes lie at least ``SWAP_MARGIN`` nearer the truth's, summed, with the two lower legs or
+the two feet exchanged).
 """
 import argparse
 import json
@@ -34,6 +40,10 @@ from accuracy import load_sequence  # noqa: E402
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
 TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
+# Per leg (left, right): knee, ankle, toe.
+LOWER_LEGS = np.array([[JOINT_INDEX[f"{side}_{name}"] for name in ("knee", "ankle", "foot")]
+                       for side in ("left", "right")])
+SWAP_MARGIN = 0.1    # metres, summed over the six joints, that a swapped reading must gain
 ROWS = ("SKR and refiner", "SKR alone", "SMRM's input", "SMRM's input, no facing check")
 
 
@@ -42,6 +52,22 @@ def toe_errors(joints, truth):
     def toes(skeleton):
         return skeleton[:, TOES] - skeleton[:, :1]
     return np.linalg.norm(toes(joints) - toes(truth), axis=-1)
+
+
+def legs_swapped(joints, truth, margin=SWAP_MARGIN):
+    """(T,) bool: frames whose lower legs (knee, ankle, toe) are nearer the truth's, summed over
+    the six joints, by more than ``margin`` metres with the left and right feet (ankle and toe)
+    or whole lower legs exchanged. ``joints``, ``truth``: (T, J, 3), metres."""
+    def distance(skeleton):
+        return np.linalg.norm(skeleton[:, LOWER_LEGS] - truth[:, LOWER_LEGS], axis=-1).sum((1, 2))
+    as_read = distance(joints)
+    best = np.full(len(joints), np.inf)
+    for exchanged in (LOWER_LEGS[:, 1:], LOWER_LEGS):
+        swapped = joints.copy()
+        swapped[:, exchanged[0]], swapped[:, exchanged[1]] = (joints[:, exchanged[1]],
+                                                              joints[:, exchanged[0]])
+        best = np.minimum(best, distance(swapped))
+    return best < as_read - margin
 
 
 def row_skeletons(weights, sequence):
@@ -61,16 +87,21 @@ def row_skeletons(weights, sequence):
 def sequence_flips(rows, sequence):
     """Per row of ``rows`` ({name: (T, J, 3) skeletons of ``sequence``}): the frames whose
     skeleton faces the wrong way, and the sums of the toe errors (``toe_errors``) over them
-    and over the other frames; and the truth's largest turn between two frames."""
+    and over the other frames; the frames facing the right way with legs swapped
+    (``legs_swapped``) and their toe errors' sum; and the truth's largest turn between two
+    frames."""
     truth_joints = sequence["source_joints"]
     truth = heading_angles(truth_joints)
     found = {}
     for name, joints in rows.items():
         flipped = np.abs(wrapped(heading_angles(joints) - truth)) > FLIP
+        swapped = legs_swapped(joints, truth_joints) & ~flipped
         errors = toe_errors(joints, truth_joints)
         found[name] = {"flipped": int(flipped.sum()),
                        "toe_error_sum_flipped": float(errors[flipped].sum()),
-                       "toe_error_sum_other": float(errors[~flipped].sum())}
+                       "toe_error_sum_other": float(errors[~flipped].sum()),
+                       "legs_swapped": int(swapped.sum()),
+                       "toe_error_sum_legs_swapped": float(errors[swapped].sum())}
     return {"sequence": str(sequence["name"]), "category": str(sequence["category"]),
             "frames": len(truth), "found": found,
             "truth_largest_turn_degrees": float(np.degrees(np.abs(wrapped(np.diff(truth)))
@@ -94,9 +125,10 @@ def main(argv=None):
         sequence = load_sequence(path)
         r = sequence_flips(row_skeletons(weights, sequence), sequence)
         results.append(r)
-        if any(found["flipped"] for found in r["found"].values()):
-            print(f"{r['sequence']} ({r['category']}, {r['frames']} frames): flipped "
-                  + ", ".join(f"{n} {r['found'][n]['flipped']}" for n in ROWS)
+        if any(found["flipped"] or found["legs_swapped"] for found in r["found"].values()):
+            print(f"{r['sequence']} ({r['category']}, {r['frames']} frames): flipped / legs "
+                  "swapped " + ", ".join(f"{n} {r['found'][n]['flipped']} / "
+                                         f"{r['found'][n]['legs_swapped']}" for n in ROWS)
                   + f"; the truth turns at most {r['truth_largest_turn_degrees']:.1f} degrees "
                   "a frame", flush=True)
     frames = sum(r["frames"] for r in results)
@@ -106,13 +138,21 @@ def main(argv=None):
         toes = {part: sum(r["found"][name][f"toe_error_sum_{part}"] for r in results)
                 / max(1, 2 * count) for part, count in (("flipped", flipped),
                                                         ("other", frames - flipped))}
+        swapped = sum(r["found"][name]["legs_swapped"] for r in results)
+        swapped_toes = (sum(r["found"][name]["toe_error_sum_legs_swapped"] for r in results)
+                        / max(1, 2 * swapped))
         summary[name] = {"flipped": flipped, "toe_error_flipped": toes["flipped"],
                          "toe_error_other": toes["other"],
-                         "sequences": sum(r["found"][name]["flipped"] > 0 for r in results)}
+                         "sequences": sum(r["found"][name]["flipped"] > 0 for r in results),
+                         "legs_swapped": swapped, "toe_error_legs_swapped": swapped_toes,
+                         "sequences_legs_swapped": sum(r["found"][name]["legs_swapped"] > 0
+                                                       for r in results)}
         print(f"{name}: {flipped} of {frames} frames ({100 * flipped / frames:.2f} %) flipped, "
               f"in {summary[name]['sequences']} of {len(results)} sequences; toes "
               f"{toes['flipped']:.3f} m from the truth's there, {toes['other']:.3f} m in the "
-              "other frames")
+              f"other frames; legs swapped in {swapped} more "
+              f"({summary[name]['sequences_legs_swapped']} sequences), toes {swapped_toes:.3f} "
+              "m from the truth's there")
     largest = max(r["truth_largest_turn_degrees"] for r in results)
     seconds = time.perf_counter() - started
     print(f"the truth turns at most {largest:.1f} degrees a frame ({seconds:.0f} s)")

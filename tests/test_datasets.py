@@ -15,7 +15,7 @@ from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # n
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
 from training.data.datasets import (BuildConfig, _Frames, augment, build,  # noqa: E402
-                                     seated_legs)
+                                     crossed_legs, seated_legs)
 
 ACTOR_HIP_HEIGHT = 0.9
 TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
@@ -319,6 +319,42 @@ def test_seated_legs_bend_hips_and_knees_forward_and_keep_the_rest():
         assert np.abs(ankle_angle - 90).max() < 40.1
 
 
+def test_crossed_legs_swing_one_foot_past_the_other_and_keep_the_rest():
+    """From the T-pose: in each pose one leg (both sides drawn) swings in so that its toe
+    passes the standing toe's side (by at least 1 cm), in front of it or behind (both drawn),
+    with the knee bent at most 60 degrees; the standing leg and every other joint stay."""
+    count = 400
+    rotations = np.zeros((count, NUM_JOINTS, 4), np.float32)
+    rotations[..., 0] = 1.0
+    crossed = crossed_legs(rotations, np.random.default_rng(5))
+    np.testing.assert_allclose(np.linalg.norm(crossed, axis=-1), 1.0, atol=1e-6)
+    hips = [JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]]
+    moved = (crossed[:, hips] != rotations[:, hips]).any(-1)                   # (N, 2)
+    assert (moved.sum(1) == 1).all() and 0.35 < moved[:, 0].mean() < 0.65
+    left = moved[:, 0]
+    legs = [JOINT_INDEX[f"{side}_{name}"] for side in ("left", "right")
+            for name in ("hip", "knee", "ankle")]
+    others = np.setdiff1d(np.arange(NUM_JOINTS), legs)
+    np.testing.assert_array_equal(crossed[:, others], rotations[:, others])
+    joints = forward_kinematics(crossed, np.zeros((count, 3), np.float32),
+                                _straight_legged_tpose())[0]
+    toe = {side: joints[:, JOINT_INDEX[f"{side}_foot"]] for side in ("left", "right")}
+    swinging = np.where(left[:, None], toe["left"], toe["right"])
+    standing = np.where(left[:, None], toe["right"], toe["left"])
+    # The T-pose's left is +X: a crossing left toe lies right of (below) the right toe's x.
+    past = np.where(left, standing[:, 0] - swinging[:, 0], swinging[:, 0] - standing[:, 0])
+    assert past.min() > 0.01 and np.median(past) > 0.15
+    in_front = swinging[:, 2] > standing[:, 2]
+    assert 0.35 < in_front.mean() < 0.65
+    for side, chosen in (("left", left), ("right", ~left)):
+        hip, knee, ankle = (joints[chosen, JOINT_INDEX[f"{side}_{name}"]]
+                            for name in ("hip", "knee", "ankle"))
+        thigh, shank = knee - hip, ankle - knee
+        cosine = (thigh * shank).sum(-1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(
+            shank, axis=-1)
+        assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 60.1
+
+
 def test_seated_fraction_bends_the_skr_frames_knees(built, cache, tmp_path):
     """seated_fraction 1: every SKR frame's knee bends more than any of the plain build's
     walking frames' (at most 30 degrees, the body's rest bend in); out of [0, 1] refused."""
@@ -341,6 +377,8 @@ def test_seated_fraction_bends_the_skr_frames_knees(built, cache, tmp_path):
         assert knee_bend(_load(folder / f"skr_{split}.npz")["joints"]).min() > plain.max() + 5
     with pytest.raises(ValueError, match=r"seated_fraction must be in \[0, 1\], got 1.5"):
         BuildConfig(seated_fraction=1.5)
+    with pytest.raises(ValueError, match=r"crossed_fraction must be in \[0, 1\], got -0.1"):
+        BuildConfig(crossed_fraction=-0.1)
 
 
 @pytest.mark.parametrize("text, message", [("nan", "must be finite, got nan"),

@@ -3,7 +3,7 @@
     python -m training.data build --cmu ../shared/data/cmu --out data [--bodies N] [--frames N]
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
                                   [--clip-stride K] [--clip-frames C] [--category-power P]
-                                  [--seated-fraction F]
+                                  [--seated-fraction F] [--crossed-fraction F]
                                   [--body-cache DIR] [--only KIND [KIND ...]]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
@@ -44,6 +44,7 @@ def _build(args):
                          skin_points=args.skin_points, clip_stride=args.clip_stride,
                          clip_frames=args.clip_frames, category_power=args.category_power,
                          seated_fraction=args.seated_fraction,
+                         crossed_fraction=args.crossed_fraction,
                          include_broken=args.include_broken)
     motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
     summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
@@ -120,6 +121,11 @@ def main(argv=None):
                               default=_DEFAULTS.seated_fraction,
                               help="SKR frames (training and validation) whose legs are bent "
                                    "as if seated or crouched (datasets.seated_legs), in [0, 1] "
+                                   "(default 0)")
+    build_parser.add_argument("--crossed-fraction", type=_finite_float,
+                              default=_DEFAULTS.crossed_fraction,
+                              help="SKR frames (training and validation) with one leg crossed "
+                                   "over the other (datasets.crossed_legs), in [0, 1] "
                                    "(default 0)")
     build_parser.add_argument("--include-broken", action="store_true",
                               help="keep the broken captures (cmu.BROKEN_TRIALS), as the "

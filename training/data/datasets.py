@@ -76,7 +76,8 @@ CHUNK = 256
 
 # Config fields added after builds were made, with the value that builds the data as before.
 # (Builds before the broken captures were found had them: include_broken True.)
-ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0, "include_broken": True}
+ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0, "crossed_fraction": 0.0,
+                       "include_broken": True}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,6 +106,9 @@ class BuildConfig:
     # SKR frames (training and validation) whose legs are bent as if seated or crouched
     # (``seated_legs``): the training motion has almost no sitting (577 of 53,326 frames).
     seated_fraction: float = 0.0
+    # SKR frames (training and validation) with one leg crossed over the other
+    # (``crossed_legs``): dancers cross their feet, and SKR then reads them swapped.
+    crossed_fraction: float = 0.0
     # Keep the broken captures (``cmu.BROKEN_TRIALS``: bodies sink through the floor), as the
     # data of the shipped weights did; ``build`` refuses motions that contradict it.
     include_broken: bool = False
@@ -112,8 +116,9 @@ class BuildConfig:
     def __post_init__(self):
         if not np.isfinite(self.category_power):
             raise ValueError(f"category_power must be finite, got {self.category_power}")
-        if not 0.0 <= self.seated_fraction <= 1.0:
-            raise ValueError(f"seated_fraction must be in [0, 1], got {self.seated_fraction}")
+        for name in ("seated_fraction", "crossed_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
     @property
     def val_bodies(self):
@@ -250,6 +255,41 @@ def seated_legs(rotations, rng):
     return rotations
 
 
+def crossed_legs(rotations, rng):
+    """One leg of each pose (left or right, alike) swung across the other, in front of it or
+    behind; the rest of the pose kept. Dancers cross a foot over and back while the other
+    stands, and SKR, which has seen few such poses, reads the feet back on their own sides.
+
+    The crossing leg: the hip turned in toward the other leg by 30 to 50 degrees and flexed
+    15 to 45 forward (the foot crosses in front) or extended 10 to 30 backward (behind), half
+    the poses each, twisted +-15 about the thigh; the knee flexed 0 to 60; the ankle turned
+    to keep the sole near level (within +-30 degrees). Axes as in ``seated_legs``.
+
+    Args:
+        rotations: (N, J, 4) float32 local quaternions (w, x, y, z).
+        rng: numpy Generator.
+    Returns:
+        (N, J, 4) float32.
+    """
+    rotations = np.array(rotations, dtype=np.float32)
+    count = len(rotations)
+    left = rng.random(count) < 0.5
+    in_front = rng.random(count) < 0.5
+    inward = np.where(left, -1.0, 1.0) * rng.uniform(np.radians(30), np.radians(50), count)
+    hip = np.where(in_front, rng.uniform(np.radians(15), np.radians(45), count),
+                   -rng.uniform(np.radians(10), np.radians(30), count))
+    twist = rng.uniform(-np.radians(15), np.radians(15), count)
+    knee = rng.uniform(0.0, np.radians(60), count)
+    ankle = np.clip(hip - knee, -np.radians(30), np.radians(30))
+    for side, chosen in (("left", left), ("right", ~left)):
+        rotations[chosen, JOINT_INDEX[f"{side}_hip"]] = quaternion_multiply(
+            _about(FORWARD_AXIS, inward[chosen]),
+            quaternion_multiply(_about(LEFT_AXIS, -hip[chosen]), _about(UP_AXIS, twist[chosen])))
+        rotations[chosen, JOINT_INDEX[f"{side}_knee"]] = _about(LEFT_AXIS, knee[chosen])
+        rotations[chosen, JOINT_INDEX[f"{side}_ankle"]] = _about(LEFT_AXIS, ankle[chosen])
+    return rotations
+
+
 def _augmentation(rng, shape, max_shift):
     return rng.uniform(0, 2 * np.pi, shape), rng.uniform(-max_shift, max_shift, shape + (2,))
 
@@ -262,10 +302,10 @@ def _chunks(indices):
 # ----------------------------------------------------------------------------- datasets
 
 def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
-                category_power=1.0, seated_fraction=0.0, progress=None):
+                category_power=1.0, seated_fraction=0.0, crossed_fraction=0.0, progress=None):
     """Static frames: random body, random frame (categories weighted by
-    ``BuildConfig.category_power``; a ``seated_fraction`` of them with ``seated_legs``),
-    augmented; see the module docstring."""
+    ``BuildConfig.category_power``; a ``seated_fraction`` of them with ``seated_legs``, then
+    a ``crossed_fraction`` with ``crossed_legs``), augmented; see the module docstring."""
     if category_power == 1.0:
         frame = _draw_frames(len(frames.root), count, rng)
     else:
@@ -276,6 +316,9 @@ def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
     if seated_fraction > 0.0:       # no draws otherwise: default builds stay as they were
         seated = np.flatnonzero(rng.random(count) < seated_fraction)
         drawn[seated] = seated_legs(drawn[seated], rng)
+    if crossed_fraction > 0.0:
+        crossed = np.flatnonzero(rng.random(count) < crossed_fraction)
+        drawn[crossed] = crossed_legs(drawn[crossed], rng)
     out = {"points": np.empty((count, points, 3), np.float32),
            "joints": np.empty((count, NUM_JOINTS, 3), np.float32), "body": body}
     for b, model in enumerate(bodies):
@@ -562,7 +605,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
                     ("skr", skr_samples, dict(count=counts.get(f"skr_{split}"),
                                               points=config.points,
                                               category_power=config.category_power,
-                                              seated_fraction=config.seated_fraction)),
+                                              seated_fraction=config.seated_fraction,
+                                              crossed_fraction=config.crossed_fraction)),
                     ("skin", skin_samples, dict(count=counts.get(f"skin_{split}"),
                                                 points=config.skin_points)),
                     ("smrm", smrm_clips, dict(stride=config.clip_stride,
