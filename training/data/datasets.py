@@ -556,7 +556,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     previous = out_dir / "manifest.json"
     partial = set(datasets) != set(DATASETS) and previous.is_file()
     old = json.loads(previous.read_text()) if partial else {}
-    # A manifest from before a config field existed was built as that field's default does.
+    # A manifest from before a config field existed was built as ADDED_CONFIG_FIELDS says.
     recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else {}
     broken = sorted(m.name for split in motions.values() for m in split
                     if m.name in BROKEN_TRIALS)
