@@ -2,7 +2,8 @@
 
     python benchmarks/accuracy.py [--quick | --validation | --dances] [--rows ROW ...] [--weights FILE]
                                   [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
-    python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md]
+                                  [--compare OTHER.json]
+    python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]
 
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
@@ -49,6 +50,8 @@ source rows likewise, ``PAIRS``): for each metric the frame-weighted difference 
 analytic; below zero, the model is better), its 95 % interval from a bootstrap over the
 sequences (``paired_difference``), and on how many sequences the model is better.
 --from-json OUT.json prints every table again from a saved run, computing nothing.
+--compare OTHER.json adds the same paired comparison of the model with the model of a saved
+run over the same sequences (other weights, say: ``against_saved``).
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
@@ -239,6 +242,24 @@ def paired_difference(results, row, baseline, samples=BOOTSTRAP_SAMPLES, seed=0)
     return out
 
 
+def against_saved(results, saved_results):
+    """This run's model row against a saved run's, sequence by sequence, as
+    ``paired_difference`` (below zero: this run better). Both must hold the same sequences in
+    the same order, or ValueError names the first that differs."""
+    for k, (ours, theirs) in enumerate(zip(results, saved_results)):
+        if (ours["sequence"], ours["frames"]) != (theirs["sequence"], theirs["frames"]):
+            raise ValueError(f"--compare: sequence {k} is {ours['sequence']} ({ours['frames']} "
+                             f"frames) here but {theirs['sequence']} ({theirs['frames']} "
+                             "frames) in the saved run")
+    if len(results) != len(saved_results):
+        raise ValueError(f"--compare: {len(results)} sequences here, {len(saved_results)} in "
+                         "the saved run")
+    pairs = [{"frames": ours["frames"], "metrics": {"this run": ours["metrics"]["model"],
+                                                    "saved": theirs["metrics"]["model"]}}
+             for ours, theirs in zip(results, saved_results)]
+    return paired_difference(pairs, "this run", "saved")
+
+
 def comparison_table(comparison, title):
     lines = [f"**{title}**", "", "| metric | difference | 95 % interval | sequences better |",
              "|---|---|---|---|"]
@@ -310,10 +331,14 @@ def main(argv=None):
     parser.add_argument("--from-json", metavar="SAVED.json",
                         help="print the tables of a saved run (its per-sequence results) "
                              "instead of running; with --json, write it back with them")
+    parser.add_argument("--compare", metavar="OTHER.json",
+                        help="also compare the model with the model of a saved run on the "
+                             "same sequences (other weights, say), sequence by sequence")
     args = parser.parse_args(argv)
+    other = json.loads(Path(args.compare).read_text())["per_sequence"] if args.compare else None
     if args.from_json:
         saved = json.loads(Path(args.from_json).read_text())
-        summary = summarize(saved["per_sequence"], saved["split"])
+        summary = summarize(saved["per_sequence"], saved["split"], other, args.compare)
         text = summary.pop("text")
         print(text)
         if args.markdown:
@@ -351,7 +376,7 @@ def main(argv=None):
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
 
     seconds = time.perf_counter() - started
-    summary = summarize(results, split)
+    summary = summarize(results, split, other, args.compare)
     text = summary.pop("text")
     total_frames = summary["frames"]
     print(text)
@@ -366,9 +391,10 @@ def main(argv=None):
              "seconds": round(seconds, 1)}, indent=2))
 
 
-def summarize(results, split):
+def summarize(results, split, other=None, other_name=None):
     """The tables of a run from its per-sequence results: a dict of the JSON's summary fields
-    and ``text``, the markdown of every table."""
+    and ``text``, the markdown of every table; with ``other`` (a saved run's per-sequence
+    results, from the file ``other_name``) also the model against its model."""
     overall = {**frame_weighted(results), "paper": PAPER}
     total_frames = sum(r["frames"] for r in results)
     by_body = {body: frame_weighted(results, lambda r, b=body: r["target_body"] == b)
@@ -389,10 +415,17 @@ def summarize(results, split):
     sections += [comparison_table(comparison, f"{name.capitalize()}, per sequence "
                                               f"(frame-weighted; below zero: the first better)")
                  for name, comparison in paired.items()]
+    compared = {}
+    if other is not None:
+        compared = {"compared_with": {"run": other_name,
+                                      "model minus its model": against_saved(results, other)}}
+        sections.append(comparison_table(compared["compared_with"]["model minus its model"],
+                                         f"Model minus the model of {other_name}, per sequence "
+                                         "(frame-weighted; below zero: this run better)"))
     return {"rows": overall, "frames": total_frames, "sequences": len(results),
             "by_target_body": by_body, "by_category": by_category,
             "feet_on_truth_contacts": feet, "paired_differences": paired, "split": split,
-            "text": "\n\n".join(sections)}
+            **compared, "text": "\n\n".join(sections)}
 
 
 if __name__ == "__main__":

@@ -68,3 +68,28 @@ def test_one_set_of_sequences_a_run(pair, capsys):
     with pytest.raises(SystemExit) as stop:
         accuracy.main(pair)
     assert stop.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+
+
+def test_compare_pairs_the_model_with_a_saved_runs_model(tmp_path, capsys):
+    """--compare: this run's model minus the saved run's, frame-weighted over the same
+    sequences; runs over other sequences are refused, naming the first that differs."""
+    this, other = tmp_path / "this.json", tmp_path / "other.json"
+    this.write_text(json.dumps({"per_sequence": results([0.0, 0.0], [3, 1], base=2.0),
+                                "split": "validation"}))
+    other.write_text(json.dumps({"per_sequence": results([0.4, -0.4], [3, 1], base=2.0),
+                                 "split": "validation"}))
+    accuracy.main(["--from-json", str(this), "--compare", str(other), "--json", str(this)])
+    assert f"Model minus the model of {other}" in capsys.readouterr().out
+    compared = json.loads(this.read_text())["compared_with"]
+    assert compared["run"] == str(other)
+    difference = compared["model minus its model"]["MPJPE"]
+    assert difference["difference"] == pytest.approx(-(0.4 * 3 - 0.4) / 4)
+    assert (difference["sequences_better"], difference["sequences"]) == (1, 2)
+    shorter = results([0.0], [3])
+    shorter[0]["sequence"] = "s9"
+    other.write_text(json.dumps({"per_sequence": shorter, "split": "validation"}))
+    with pytest.raises(ValueError, match=r"sequence 0 is s0 \(3 frames\) here but s9"):
+        accuracy.main(["--from-json", str(this), "--compare", str(other)])
+    other.write_text(json.dumps({"per_sequence": results([0.0], [3]), "split": "validation"}))
+    with pytest.raises(ValueError, match="2 sequences here, 1 in the saved run"):
+        accuracy.main(["--from-json", str(this), "--compare", str(other)])
