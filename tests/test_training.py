@@ -365,8 +365,9 @@ def test_skin_loss_is_zero_for_the_true_weights():
 def test_foot_velocity_error_counts_only_the_true_feet_ground_steps():
     """Hand-computed, two clips on floors 1 m apart (contact is judged per clip): the left foot
     stays down, the right lifts 10 cm in the last frame; the denoised left foot steps 1 cm (3 cm
-    in the second clip) sideways and back while lifted 5 cm (contact is the truth's, not the denoised), the right
-    slides 2 cm in the air and 1 cm up while down (the height is not a horizontal step)."""
+    in the second clip) sideways and back while lifted 5 cm (contact is the truth's, not the
+    denoised), the right slides 2 cm in the air and 1 cm up while down (the height is not a
+    horizontal step)."""
     left, right = JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]
     truth = torch.zeros(2, 3, NUM_JOINTS, 3)
     truth[1, :, :, 1] += 1.0

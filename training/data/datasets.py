@@ -247,11 +247,7 @@ def seated_legs(rotations, rng):
         twist = rng.uniform(-np.radians(15), np.radians(15), count)
         knee = rng.uniform(np.radians(40), np.radians(140), count)
         ankle = np.clip(hip - knee, -np.radians(40), np.radians(40))
-        rotations[:, JOINT_INDEX[f"{side}_hip"]] = quaternion_multiply(
-            _about(FORWARD_AXIS, spread),
-            quaternion_multiply(_about(LEFT_AXIS, -hip), _about(UP_AXIS, twist)))
-        rotations[:, JOINT_INDEX[f"{side}_knee"]] = _about(LEFT_AXIS, knee)
-        rotations[:, JOINT_INDEX[f"{side}_ankle"]] = _about(LEFT_AXIS, ankle)
+        _set_leg(rotations, slice(None), side, spread, hip, twist, knee, ankle)
     return rotations
 
 
@@ -282,12 +278,21 @@ def crossed_legs(rotations, rng):
     knee = rng.uniform(0.0, np.radians(60), count)
     ankle = np.clip(hip - knee, -np.radians(30), np.radians(30))
     for side, chosen in (("left", left), ("right", ~left)):
-        rotations[chosen, JOINT_INDEX[f"{side}_hip"]] = quaternion_multiply(
-            _about(FORWARD_AXIS, inward[chosen]),
-            quaternion_multiply(_about(LEFT_AXIS, -hip[chosen]), _about(UP_AXIS, twist[chosen])))
-        rotations[chosen, JOINT_INDEX[f"{side}_knee"]] = _about(LEFT_AXIS, knee[chosen])
-        rotations[chosen, JOINT_INDEX[f"{side}_ankle"]] = _about(LEFT_AXIS, ankle[chosen])
+        _set_leg(rotations, chosen, side, inward[chosen], hip[chosen], twist[chosen],
+                 knee[chosen], ankle[chosen])
     return rotations
+
+
+def _set_leg(rotations, rows, side, spread, flexion, twist, knee, ankle):
+    """Write one leg's local rotations into ``rotations[rows]`` (N, J, 4): the hip twisted
+    about the thigh, flexed forward about the left axis, then turned about the forward axis
+    by ``spread`` (outward for positive on the left leg); knee and ankle flexed about the
+    left axis. Angles in radians, one per row."""
+    rotations[rows, JOINT_INDEX[f"{side}_hip"]] = quaternion_multiply(
+        _about(FORWARD_AXIS, spread),
+        quaternion_multiply(_about(LEFT_AXIS, -flexion), _about(UP_AXIS, twist)))
+    rotations[rows, JOINT_INDEX[f"{side}_knee"]] = _about(LEFT_AXIS, knee)
+    rotations[rows, JOINT_INDEX[f"{side}_ankle"]] = _about(LEFT_AXIS, ankle)
 
 
 def _augmentation(rng, shape, max_shift):
