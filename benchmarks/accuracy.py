@@ -51,7 +51,8 @@ analytic; below zero, the model is better), its 95 % interval from a bootstrap o
 sequences (``paired_difference``), and on how many sequences the model is better.
 --from-json OUT.json prints every table again from a saved run, computing nothing.
 --compare OTHER.json adds the same paired comparison of the model with the model of a saved
-run over the same sequences (other weights, say: ``against_saved``).
+run over the same sequences (other weights, say: ``against_saved``); a saved run of another
+split, or quick against full, is refused before the run starts.
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
@@ -335,9 +336,19 @@ def main(argv=None):
                         help="also compare the model with the model of a saved run on the "
                              "same sequences (other weights, say), sequence by sequence")
     args = parser.parse_args(argv)
-    other = json.loads(Path(args.compare).read_text())["per_sequence"] if args.compare else None
-    if args.from_json:
-        saved = json.loads(Path(args.from_json).read_text())
+    saved = json.loads(Path(args.from_json).read_text()) if args.from_json else None
+    split = (saved["split"] if saved else "validation" if args.validation
+             else "training dances" if args.dances else "test")
+    quick = saved.get("quick", False) if saved else args.quick
+    other = None
+    if args.compare:        # refused now, not after a run of many minutes
+        compared = json.loads(Path(args.compare).read_text())
+        if (compared["split"], compared.get("quick", False)) != (split, quick):
+            parser.error(f"--compare: {args.compare} scored {compared['split']} sequences"
+                         f"{' (quick)' if compared.get('quick') else ''}, this run "
+                         f"{split}{' (quick)' if quick else ''}")
+        other = compared["per_sequence"]
+    if saved:
         summary = summarize(saved["per_sequence"], saved["split"], other, args.compare)
         text = summary.pop("text")
         print(text)
@@ -348,7 +359,6 @@ def main(argv=None):
         return
     wanted = ["model"] + [row for row in args.rows if row != "model"]
     test_dir = Path(args.data) / "test"
-    split = "validation" if args.validation else "training dances" if args.dances else "test"
     if split == "test" and not test_dir.is_dir():
         print(f"{test_dir} is absent: building the data first", flush=True)
         subprocess.run([sys.executable, "-m", "training.data", "build", "--cmu", args.cmu,

@@ -72,7 +72,8 @@ def test_one_set_of_sequences_a_run(pair, capsys):
 
 def test_compare_pairs_the_model_with_a_saved_runs_model(tmp_path, capsys):
     """--compare: this run's model minus the saved run's, frame-weighted over the same
-    sequences; runs over other sequences are refused, naming the first that differs."""
+    sequences; runs over other sequences are refused, naming the first that differs, and a
+    run of another split (or quick against full) before any work."""
     this, other = tmp_path / "this.json", tmp_path / "other.json"
     this.write_text(json.dumps({"per_sequence": results([0.0, 0.0], [3, 1], base=2.0),
                                 "split": "validation"}))
@@ -93,3 +94,9 @@ def test_compare_pairs_the_model_with_a_saved_runs_model(tmp_path, capsys):
     other.write_text(json.dumps({"per_sequence": results([0.0], [3]), "split": "validation"}))
     with pytest.raises(ValueError, match="2 sequences here, 1 in the saved run"):
         accuracy.main(["--from-json", str(this), "--compare", str(other)])
+    other.write_text(json.dumps({"per_sequence": results([0.0, 0.0], [3, 1]), "split": "test",
+                                 "quick": True}))
+    with pytest.raises(SystemExit) as stop:     # another split: refused before any work
+        accuracy.main(["--from-json", str(this), "--compare", str(other)])
+    assert stop.value.code == 2
+    assert "scored test sequences (quick), this run validation" in capsys.readouterr().err
