@@ -4,6 +4,7 @@ Needs anny (the 12 bodies of a tiny build take about 10 s once anny's model cach
 """
 import dataclasses
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -14,8 +15,8 @@ from minretarget.conventions import JOINT_INDEX, NUM_JOINTS  # noqa: E402
 from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # noqa: E402
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
-from training.data.datasets import (BuildConfig, _Frames, augment, build,  # noqa: E402
-                                     crossed_legs, seated_legs)
+from training.data.datasets import (DATASETS, BuildConfig, _Frames, augment,  # noqa: E402
+                                     build, crossed_legs, seated_legs)
 
 ACTOR_HIP_HEIGHT = 0.9
 TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
@@ -428,3 +429,70 @@ def test_broken_captures_need_include_broken_and_old_builds_count_as_having_them
         build(broken, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**kept.__dict__, "seed": 9}),
               show_progress=False, datasets=("skin",))
     assert "include_broken" not in str(refused.value).split("differs in")[1]
+
+
+# ----------------------------------------------------------------------------- data packs
+
+def _tiny_pack(built, cache, path):
+    """The tiny build's motions (train and val) and bodies, packed into ``path``."""
+    from training.data.pack import pack_arrays, write_pack
+    _, summary = built
+    chosen = {split: [_body(summary, split, i, cache)
+                      for i in range(len(summary["bodies"][split]))] for split in ("train", "val")}
+    write_pack(path, pack_arrays(MOTIONS, ACTOR_HIP_HEIGHT, chosen, include_broken=False))
+    return chosen
+
+
+def test_a_build_from_a_pack_is_the_build_from_the_motions_and_cache_without_anny(
+        built, cache, tmp_path, monkeypatch):
+    from training.data.pack import load_pack
+    out, _ = built
+    chosen = _tiny_pack(built, cache, tmp_path / "pack.npz")
+    monkeypatch.setitem(sys.modules, "anny", None)      # importing anny now fails
+    pack = load_pack(tmp_path / "pack.npz")
+    assert pack.actor_hip_height == ACTOR_HIP_HEIGHT and not pack.include_broken
+    assert [m.name for m in pack.motions["train"]] == ["train_a", "train_b"]
+    assert pack.motions["test"] == []
+    assert [b.name for b in pack.bodies["val"]] == [b.name for b in chosen["val"]]
+    assert pack.bodies["train"][1].phenotype == chosen["train"][1].phenotype
+    kinds = tuple(kind for kind in DATASETS if kind != "test")
+    summary = build(pack.motions, pack.actor_hip_height, tmp_path / "again", TINY,
+                    show_progress=False, datasets=kinds, bodies=pack.bodies)
+    assert summary["bodies"] == json.loads((out / "manifest.json").read_text())["bodies"]
+    compared = sorted(out.glob("*.npz"))
+    assert len(compared) == 2 * len(kinds)
+    for path in compared:
+        first, second = _load(path), _load(tmp_path / "again" / path.name)
+        assert first.keys() == second.keys()
+        for key in first:
+            assert first[key].tobytes() == second[key].tobytes(), (path.name, key)
+
+
+def test_build_command_from_a_pack_and_its_refusals(built, cache, tmp_path, capsys):
+    from training.data.__main__ import main
+    _tiny_pack(built, cache, tmp_path / "pack.npz")
+    common = ["build", "--pack", str(tmp_path / "pack.npz"), "--bodies", "2", "--frames", "12",
+              "--points", "64", "--seed", "3"]
+    main(common + ["--out", str(tmp_path / "out"), "--only", "skr"])
+    np.testing.assert_array_equal(_load(tmp_path / "out" / "skr_train.npz")["points"],
+                                  _load(built[0] / "skr_train.npz")["points"])
+    for extra, message in (
+            (["--only", "test"], "holds no test split; build it with --cmu"),
+            (["--include-broken"], "was packed without the broken captures"),
+            (["--bodies", "3"], "the build needs 3 train bodies, given 2")):
+        with pytest.raises(SystemExit, match=message):
+            main(common + ["--out", str(tmp_path / "refused")] + extra)
+    assert not (tmp_path / "refused").exists()
+    np.savez(tmp_path / "other.npz", points=np.zeros(3))
+    with pytest.raises(SystemExit, match=r"other.npz: not a data pack, missing \['actor_hip"):
+        main(["build", "--pack", str(tmp_path / "other.npz"), "--out", str(tmp_path / "x")])
+
+
+def test_a_pack_holds_one_mesh_topology(built, cache):
+    from training.data.pack import pack_arrays
+    _, summary = built
+    first, second = (_body(summary, "train", i, cache) for i in range(2))
+    other = dataclasses.replace(second, weights=np.roll(second.weights, 1, axis=1))
+    with pytest.raises(ValueError, match=f"body {second.name} has other faces or skinning "
+                                         f"weights than {first.name}"):
+        pack_arrays(MOTIONS, ACTOR_HIP_HEIGHT, {"train": [first, other], "val": []}, False)

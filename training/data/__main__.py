@@ -1,10 +1,13 @@
 """Command line: build the datasets, or draw a preview of bodies walking.
 
-    python -m training.data build --cmu ../shared/data/cmu --out data [--bodies N] [--frames N]
+    python -m training.data build (--cmu ../shared/data/cmu | --pack FILE) --out data
+                                  [--bodies N] [--frames N]
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
                                   [--clip-stride K] [--clip-frames C] [--category-power P]
                                   [--seated-fraction F] [--crossed-fraction F]
                                   [--body-cache DIR] [--only KIND [KIND ...]]
+    python -m training.data pack --cmu ../shared/data/cmu --out data/pack.npz [--bodies N]
+                                 [--include-broken] [--body-cache DIR]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
                                    [--points P] [--seed S]
@@ -39,6 +42,21 @@ def _finite_float(text):
 
 def _build(args):
     start = time.perf_counter()
+    bodies = None
+    if args.pack is not None:         # motions and bodies from a pack (training.data.pack)
+        from .pack import load_pack
+        try:
+            pack = load_pack(args.pack)
+        except ValueError as error:
+            sys.exit(str(error))
+        if args.include_broken and not pack.include_broken:
+            sys.exit(f"--include-broken: {args.pack} was packed without the broken captures")
+        if "test" in args.only:
+            if args.only is not DATASETS:
+                sys.exit(f"--only test: {args.pack} holds no test split; build it with --cmu")
+            args.only = tuple(kind for kind in DATASETS if kind != "test")
+        args.include_broken = pack.include_broken
+        motions, actor_hip_height, bodies = pack.motions, pack.actor_hip_height, pack.bodies
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
                          points=args.points, skin_samples=args.skin_samples,
                          skin_points=args.skin_points, clip_stride=args.clip_stride,
@@ -46,9 +64,13 @@ def _build(args):
                          seated_fraction=args.seated_fraction,
                          crossed_fraction=args.crossed_fraction,
                          include_broken=args.include_broken)
-    motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
-    summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
-                    datasets=args.only)
+    if args.pack is None:
+        motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
+    try:
+        summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
+                        datasets=args.only, bodies=bodies)
+    except ValueError as error:
+        sys.exit(str(error))
     counts = summary["counts"]
     print(f"\nbuilt {args.out} in {time.perf_counter() - start:.0f} s "
           f"(datasets {summary['seconds']:.0f} s), {_size(summary['total_bytes'])} in all")
@@ -69,6 +91,15 @@ def _build(args):
     test_bytes = sum(v for k, v in summary["files"].items() if k.startswith("test/"))
     print(f"  test: {counts['test_sequences']} sequences, {counts['test_frames']} frames "
           f"({_size(test_bytes)})")
+
+
+def _pack(args):
+    from .pack import make_pack
+    arrays = make_pack(args.cmu, args.out, args.bodies, args.include_broken, args.body_cache)
+    splits = arrays["motion_splits"].tolist()
+    print(f"wrote {args.out}: {splits.count('train')} train and {splits.count('val')} val "
+          f"trials ({len(arrays['motion_root'])} frames), "
+          f"{len(arrays['body_names'])} bodies, {_size(Path(args.out).stat().st_size)}")
 
 
 def _preview(args):
@@ -97,7 +128,10 @@ def main(argv=None):
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
     build_parser = commands.add_parser("build", help="build every dataset (deterministic)")
-    build_parser.add_argument("--cmu", required=True, help="the CMU BVH folder")
+    source = build_parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--cmu", help="the CMU BVH folder")
+    source.add_argument("--pack", help="a data pack (python -m training.data pack) instead of "
+                        "the CMU folder and the body cache: every dataset but the test split")
     build_parser.add_argument("--out", required=True, help="output folder")
     for name, help_text in (
             ("seed", "random seed"),
@@ -133,6 +167,15 @@ def main(argv=None):
     build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")
+    pack_parser = commands.add_parser("pack", help="pack the training and validation motions "
+                                      "and bodies into one file (for a machine without them)")
+    pack_parser.add_argument("--cmu", required=True, help="the CMU BVH folder")
+    pack_parser.add_argument("--out", required=True, help="output .npz")
+    pack_parser.add_argument("--bodies", type=int, default=_DEFAULTS.bodies,
+                             help="training bodies, with the validation bodies a build of "
+                             f"that many uses (default {_DEFAULTS.bodies})")
+    pack_parser.add_argument("--include-broken", action="store_true",
+                             help="keep the broken captures (cmu.BROKEN_TRIALS)")
     preview_parser = commands.add_parser("preview", help="draw bodies walking into a png")
     preview_parser.add_argument("--out", required=True, help="output .png")
     preview_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")
@@ -144,12 +187,13 @@ def main(argv=None):
     sample_parser.add_argument("--trial", default="08_01", help="CMU test-split trial (a walk)")
     sample_parser.add_argument("--points", type=int, default=2048, help="points per cloud")
     sample_parser.add_argument("--seed", type=int, default=0, help="random seed")
-    for sub in (build_parser, preview_parser, sample_parser):
+    for sub in (build_parser, pack_parser, preview_parser, sample_parser):
         sub.add_argument("--body-cache", default=None,
                          help="body cache folder (default $MINRETARGET_CACHE/bodies or "
                               "~/.cache/minretarget/bodies)")
     args = parser.parse_args(argv)
-    {"build": _build, "preview": _preview, "sample": _sample}[args.command](args)
+    {"build": _build, "pack": _pack, "preview": _preview,
+     "sample": _sample}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -537,7 +537,7 @@ DATASETS = ("skr", "skin", "smrm", "skr_tpose", "test", "sequences")
 
 
 def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=None,
-          show_progress=True, datasets=DATASETS):
+          show_progress=True, datasets=DATASETS, bodies=None):
     """Build the datasets into ``out_dir``, deterministically from ``config.seed``.
 
     Args:
@@ -553,6 +553,10 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
             each kind draws from its own random stream, so it comes out as in a full build).
             Built into a folder that holds a build already, they are added to its
             manifest, which must record the same config.
+        bodies: None to make the sampled bodies (from the cache, else with anny), or
+            {'train', 'val': [Body]} holding at least ``config.bodies`` and
+            ``config.val_bodies`` of them, whose first ones are taken (a data pack's,
+            ``pack.load_pack``); the test split's bodies always come from the cache.
     Returns:
         a summary dict: counts, file sizes (bytes), seconds; also saved as manifest.json.
     """
@@ -578,10 +582,18 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
         ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test",
          "skr_tpose_train", "skr_tpose_val", "sequences_train", "sequences_val"))}
-    bodies = {"train": [body_from_seed(s, cache_dir)
-                        for s in sampled_body_seeds(config.bodies, "train")],
-              "val": [body_from_seed(s, cache_dir)
-                      for s in sampled_body_seeds(config.val_bodies, "val")]}
+    if bodies is None:
+        bodies = {"train": [body_from_seed(s, cache_dir)
+                            for s in sampled_body_seeds(config.bodies, "train")],
+                  "val": [body_from_seed(s, cache_dir)
+                          for s in sampled_body_seeds(config.val_bodies, "val")]}
+    else:
+        for split, count in (("train", config.bodies), ("val", config.val_bodies)):
+            if len(bodies[split]) < count:
+                raise ValueError(f"the build needs {count} {split} bodies, given "
+                                 f"{len(bodies[split])}")
+        bodies = {"train": bodies["train"][:config.bodies],
+                  "val": bodies["val"][:config.val_bodies]}
     unknown = sorted(set(datasets) - set(DATASETS))
     if unknown:
         raise ValueError(f"unknown datasets {unknown}; known: {DATASETS}")
