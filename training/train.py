@@ -3,7 +3,7 @@
     python -m training.train {skr,refine,denoise,skin,smrm,all} --recipe cpu --data data
                              --out runs/cpu
                              [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
-                             [--scratch STAGES] [--set KEY=VALUE ...]
+                             [--scratch STAGES] [--set KEY=VALUE ...] [--pack FILE]
 
 Each stage writes into --out: ``<stage>.pt`` (checkpoint, written atomically every eval),
 ``<stage>.csv`` (losses and validation metrics), ``<stage>.png`` (their plot). ``all`` then
@@ -14,6 +14,9 @@ file, stages not listed keep its networks, and the export happens after any stag
 --init. ``--set smrm.clip_frames=10`` overrides one recipe value (ablations); the run's
 recipe.json and the weights' metadata record the recipe as run.
 --resume continues each unfinished stage from its checkpoint; finished stages are skipped.
+``--pack FILE`` (a data pack, ``training.data.pack``): SKR poses fresh frames for every batch
+on the training device (``training.data.online``) instead of reading ``skr_train.npz``, for a
+GPU, which would run through a build's frames in minutes; the other stages read --data as ever.
 Validation uses the held-out training subjects and bodies (``*_val.npz``), never the test split.
 """
 import argparse
@@ -36,6 +39,9 @@ from minretarget.refine import refine_joints
 from minretarget.skr import regress_joints
 from minretarget.smoothing import Smoothing, smooth_joints
 from minretarget.weights import load_weights
+from training.data.datasets import BuildConfig
+from training.data.online import OnlineFrames
+from training.data.pack import load_pack
 from training.export import (export_weights, import_weights, refine_runtime_weights,
                              skr_runtime_weights)
 from training.kinematics import forward_kinematics
@@ -267,9 +273,29 @@ def initial_models(recipe, init=None, scratch=()):
     return models
 
 
-def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
+def online_skr_data(pack, device, seed):
+    """SKR's training frames drawn afresh from a data pack (``training.data.online``), and
+    VALIDATION_LIMIT validation frames drawn once from its validation split."""
+    config = BuildConfig()       # the draws of the default build (the shipped weights' data)
+
+    def frames(split):
+        return OnlineFrames(pack.motions[split], pack.bodies[split], pack.actor_hip_height,
+                            config, device)
+    source, rng = frames("val"), np.random.default_rng([seed, 0])
+    generator = torch.Generator(device).manual_seed(seed)
+    chunks = [source.batch(min(64, VALIDATION_LIMIT - start), config.points, rng, generator)
+              for start in range(0, VALIDATION_LIMIT, 64)]
+    return frames("train"), {key: torch.cat([c[key] for c in chunks]) for key in chunks[0]}
+
+
+def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None, pack=None):
+    """SKR on the built frames (``skr_*.npz``), or with a data pack (``pack.load_pack``) on
+    frames drawn afresh every batch; the T-pose frames always come from ``skr_tpose_*.npz``."""
     stage_recipe = recipe.skr
-    train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
+    if pack is None:
+        train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
+    else:
+        train, val = online_skr_data(pack, device, recipe.seed)
     tpose_train, tpose_val = (load_split(data_dir, f"skr_tpose_{s}", device)
                               for s in ("train", "val"))
     model = (model or SkeletonRegressor(recipe.model)).to(device)
@@ -278,9 +304,20 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
                   stage_recipe.eval_every, recipe.seed)
     tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
 
+    def online_batch(stage):
+        """Fresh frames, as many points as the T-pose clouds (a subset is taken below); the
+        draws are seeded by the step, so a resumed stage draws what it would have."""
+        moving = train.batch(stage_recipe.batch_size - tpose_count,
+                             tpose_train["points"].shape[1],
+                             np.random.default_rng([recipe.seed, 1, stage.step]),
+                             torch.Generator(device).manual_seed(recipe.seed + stage.step))
+        still = stage.batch(len(tpose_train["points"]), tpose_count)
+        return {key: torch.cat([moving[key], tpose_train[key][still]]) for key in moving}
+
     def train_step(stage):
-        batch = posed_and_tpose_batch(stage, train, tpose_train, stage_recipe.batch_size,
-                                      tpose_count, ("points", "joints"))
+        batch = (posed_and_tpose_batch(stage, train, tpose_train, stage_recipe.batch_size,
+                                       tpose_count, ("points", "joints"))
+                 if pack is None else online_batch(stage))
         points = subsample_points(batch["points"], stage_recipe.points, stage.generator)
         loss = skr_loss(model(points), batch["joints"])
         optimizer.zero_grad(set_to_none=True)
@@ -591,14 +628,19 @@ def current_commit():
         return "unknown"
 
 
-def provenance(recipe, data_dir, init=None):
-    """What made these weights: recipe, data manifest summary, commit, and the provenance of
-    the weights training started from, if any."""
+def provenance(recipe, data_dir, init=None, pack=None):
+    """What made these weights: recipe, data manifest summary (and the data pack SKR drew
+    from, if any), commit, and the provenance of the weights training started from, if any."""
     commit = current_commit()
     manifest_path = Path(data_dir) / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
     out = {"recipe": json.loads(recipe.to_json()), "commit": commit,
            "data": {k: manifest.get(k) for k in ("config", "counts", "actor_hip_height")}}
+    if pack is not None:
+        out["data"]["skr_online_pack"] = {
+            "trials": {split: len(pack.motions[split]) for split in ("train", "val")},
+            "bodies": {split: len(pack.bodies[split]) for split in ("train", "val")},
+            "include_broken": pack.include_broken}
     if init is not None:
         out["init"] = init.metadata
     return out
@@ -637,7 +679,18 @@ def main(argv=None):
                              "repeatable")
     parser.add_argument("--stop-at", type=int, metavar="STEP",
                         help="stop each stage at this step, checkpointed, to --resume later")
+    parser.add_argument("--pack", metavar="FILE",
+                        help="SKR draws fresh frames every batch from this data pack "
+                             "(python -m training.data pack) and validates on 2,048 drawn "
+                             "once from its validation split; --data still gives the T-pose "
+                             "frames (skr_tpose_*.npz)")
     args = parser.parse_args(argv)
+    pack = None
+    if args.pack is not None:
+        try:
+            pack = load_pack(args.pack)
+        except ValueError as error:
+            parser.error(f"--pack: {error}")
     if args.threads:
         torch.set_num_threads(args.threads)
     recipe = load_recipe(args.recipe, args.set)
@@ -666,7 +719,8 @@ def main(argv=None):
         return optional[name] and (name in stages or (
             init is not None and getattr(init, name) is not None
             and name not in args.scratch))
-    trainers = {"skr": train_skr, "skin": train_skin, "smrm": train_smrm,
+    trainers = {"skr": lambda *a: train_skr(*a, pack=pack), "skin": train_skin,
+                "smrm": train_smrm,
                 "refine": lambda *a: train_refine(*a, skr=models["skr"]),
                 "denoise": lambda *a: train_denoise(*a, skr=models["skr"], refine=models[
                     "refine"] if trained("refine") else None)}
@@ -695,7 +749,8 @@ def main(argv=None):
     if finished and (stages == own or init is not None):
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
-                       metadata=provenance(recipe, args.data, init),
+                       metadata=provenance(recipe, args.data, init,
+                                           pack if "skr" in stages else None),
                        refine=models["refine"].cpu() if trained("refine") else None,
                        denoise=models["denoise"].cpu() if trained("denoise") else None)
         print(f"exported {path}")

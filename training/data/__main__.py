@@ -78,7 +78,8 @@ def _build(args):
           f"{counts['trials_test']} test trials; {counts['motion_frames_train']} train and "
           f"{counts['motion_frames_val']} val frames at 30 fps; actor hip height "
           f"{actor_hip_height:.3f} m")
-    print(f"  bodies: {counts['bodies_train']} train, {counts['bodies_val']} val, 8 test")
+    print(f"  bodies: {counts['bodies_train']} train, {counts['bodies_val']} val"
+          + (", 8 test" if "test" in args.only else ""))
     for kind, unit in (("skr", "frames"), ("skin", "samples"), ("smrm", "clips"),
                        ("sequences", "frames")):
         if kind not in args.only:

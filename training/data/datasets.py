@@ -311,6 +311,24 @@ def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
     """Static frames: random body, random frame (categories weighted by
     ``BuildConfig.category_power``; a ``seated_fraction`` of them with ``seated_legs``, then
     a ``crossed_fraction`` with ``crossed_legs``), augmented; see the module docstring."""
+    body, rotations, root = skr_poses(frames, bodies, count, actor_hip_height, rng, max_shift,
+                                      category_power, seated_fraction, crossed_fraction)
+    out = {"points": np.empty((count, points, 3), np.float32),
+           "joints": np.empty((count, NUM_JOINTS, 3), np.float32), "body": body}
+    for b, model in enumerate(bodies):
+        for chunk in _chunks(np.flatnonzero(body == b)):
+            out["points"][chunk], out["joints"][chunk] = posed_clouds(
+                model, rotations[chunk], root[chunk], points, rng)
+            if progress is not None:
+                progress.update(len(chunk))
+    return out
+
+
+def skr_poses(frames, bodies, count, actor_hip_height, rng, max_shift, category_power=1.0,
+              seated_fraction=0.0, crossed_fraction=0.0):
+    """The draws of ``skr_samples``, before posing: (count,) int32 bodies, (count, J, 4)
+    float32 rotations and (count, 3) float32 roots (the actor's scaled to each body's hips,
+    turned and shifted)."""
     if category_power == 1.0:
         frame = _draw_frames(len(frames.root), count, rng)
     else:
@@ -324,19 +342,10 @@ def skr_samples(frames, bodies, count, points, actor_hip_height, rng, max_shift,
     if crossed_fraction > 0.0:
         crossed = np.flatnonzero(rng.random(count) < crossed_fraction)
         drawn[crossed] = crossed_legs(drawn[crossed], rng)
-    out = {"points": np.empty((count, points, 3), np.float32),
-           "joints": np.empty((count, NUM_JOINTS, 3), np.float32), "body": body}
-    for b, model in enumerate(bodies):
-        scale = model.hip_height / actor_hip_height
-        for chunk in _chunks(np.flatnonzero(body == b)):
-            rotations, root = augment(drawn[chunk],
-                                      frames.root[frame[chunk]] * scale,
-                                      heading[chunk], shift[chunk])
-            out["points"][chunk], out["joints"][chunk] = posed_clouds(model, rotations, root,
-                                                                      points, rng)
-            if progress is not None:
-                progress.update(len(chunk))
-    return out
+    scale = np.array([model.hip_height for model in bodies])[body] / actor_hip_height
+    rotations, root = augment(drawn, frames.root[frame] * scale[:, None].astype(np.float32),
+                              heading, shift)
+    return body, rotations, root
 
 
 def skr_tpose_samples(bodies, count, points, rng, max_shift, progress=None):

@@ -1,0 +1,137 @@
+"""SKR's online frames (training.data.online) against the numpy build, and SKR trained from a
+data pack (training.data.pack): twin poses, area-uniform points, exact resume. No anny: the
+bodies are synthetic meshes, a small triangle riding each joint."""
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from minretarget.conventions import NUM_JOINTS  # noqa: E402
+import training.train  # noqa: E402
+from test_training import (TINY_RECIPE, random_quaternions, skeleton,  # noqa: E402
+                           write_datasets)
+from training.data.bodies import Body, pose_body  # noqa: E402
+from training.data.cmu import Motion  # noqa: E402
+from training.data.datasets import BuildConfig, _Frames, skr_poses  # noqa: E402
+from training.data.online import OnlineFrames, surface_points  # noqa: E402
+from training.data.pack import load_pack, pack_arrays, write_pack  # noqa: E402
+from training.recipe import load_recipe  # noqa: E402
+from training.train import main, provenance  # noqa: E402
+
+ACTOR_HIP_HEIGHT = 0.9
+CONFIG = BuildConfig(seated_fraction=0.3, crossed_fraction=0.3)
+
+
+def synthetic_body(rng, name, height):
+    """A skeleton with a 5 cm triangle at each joint, skinned wholly to that joint."""
+    joints = skeleton(rng, height)
+    corners = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.05, 0.0]], np.float32)
+    vertices = (joints[:, None] + corners).reshape(-1, 3)
+    faces = np.arange(3 * NUM_JOINTS, dtype=np.int32).reshape(-1, 3)
+    weights = np.repeat(np.eye(NUM_JOINTS, dtype=np.float32), 3, axis=0)
+    return Body(name=name, phenotype={"height": height}, vertices=vertices, faces=faces,
+                joints=joints, weights=weights)
+
+
+def synthetic_motion(rng, name, frames):
+    root = np.cumsum(rng.normal(0, 0.02, (frames, 3)), axis=0) + [0, ACTOR_HIP_HEIGHT, 0]
+    return Motion(name=name, rotations=random_quaternions(rng, (frames, NUM_JOINTS)),
+                  root=root.astype(np.float32), fps=30, category="walk", source_fps=120.0)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    rng = np.random.default_rng(0)
+    bodies = {"train": [synthetic_body(rng, f"b{i}", 0.8 + 0.1 * i) for i in range(3)],
+              "val": [synthetic_body(rng, "v0", 0.95)]}
+    bodies["val"][0] = Body(**{**bodies["val"][0].__dict__, "faces": bodies["train"][0].faces,
+                               "weights": bodies["train"][0].weights})
+    motions = {"train": [synthetic_motion(rng, "t0", 40), synthetic_motion(rng, "t1", 30)],
+               "val": [synthetic_motion(rng, "v0", 20)], "test": []}
+    return motions, bodies
+
+
+def test_surface_points_are_area_uniform_on_the_mesh():
+    # Two triangles in the z = 0 plane, of areas 0.5 and 1.5.
+    vertices = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0],
+                              [2, 0, 0], [5, 0, 0], [2, 1, 0]]]).repeat(2, 1, 1)
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5]])
+    points = surface_points(vertices, faces, 20_000, torch.Generator().manual_seed(0))
+    assert points.shape == (2, 20_000, 3)
+    assert torch.all(points[..., 2] == 0)
+    second = points[..., 0] >= 2
+    assert abs(float(second.float().mean()) - 0.75) < 0.01
+    x, y = points[..., 0], points[..., 1]
+    inside_first = (x >= 0) & (y >= 0) & (x + y <= 1 + 1e-6)
+    inside_second = (x >= 2) & (y >= 0) & ((x - 2) / 3 + y <= 1 + 1e-6)
+    assert torch.all(inside_first | inside_second)
+    # Uniform within a triangle: the mean is its centroid.
+    np.testing.assert_allclose(points[~second].mean(0).numpy(), [1 / 3, 1 / 3, 0], atol=0.01)
+    np.testing.assert_allclose(points[second].mean(0).numpy(), [3, 1 / 3, 0], atol=0.02)
+
+
+def test_online_frames_draw_and_pose_as_the_numpy_build(synthetic):
+    motions, bodies = synthetic
+    online = OnlineFrames(motions["train"], bodies["train"], ACTOR_HIP_HEIGHT, CONFIG, "cpu")
+    body, rotations, root = online.poses(16, np.random.default_rng(5))
+    expected = skr_poses(_Frames.of(motions["train"]), bodies["train"], 16, ACTOR_HIP_HEIGHT,
+                         np.random.default_rng(5), CONFIG.max_shift, CONFIG.category_power,
+                         CONFIG.seated_fraction, CONFIG.crossed_fraction)
+    for got, want in zip((body, rotations, root), expected):
+        np.testing.assert_array_equal(got, want)
+    vertices, joints = online.pose(body, rotations, root)
+    for i in range(16):
+        twin_vertices, twin_joints = pose_body(bodies["train"][body[i]], rotations[i], root[i])
+        np.testing.assert_allclose(vertices[i].numpy(), twin_vertices, atol=2e-6)
+        np.testing.assert_allclose(joints[i].numpy(), twin_joints, atol=2e-6)
+    batch = online.batch(16, 30, np.random.default_rng(5), torch.Generator().manual_seed(1))
+    np.testing.assert_array_equal(batch["joints"].numpy(), joints.numpy())
+    # Every point lies on the triangle of some joint: within its 5 cm of that joint.
+    distance = (batch["points"][:, :, None] - joints[:, None]).norm(dim=-1).min(-1).values
+    assert batch["points"].shape == (16, 30, 3) and float(distance.max()) <= 0.05 + 1e-5
+
+
+def test_online_frames_need_one_mesh_topology(synthetic):
+    motions, bodies = synthetic
+    other = Body(**{**bodies["train"][1].__dict__, "weights": bodies["train"][1].weights[::-1]})
+    with pytest.raises(ValueError, match="one mesh topology and skinning weights"):
+        OnlineFrames(motions["train"], [bodies["train"][0], other], ACTOR_HIP_HEIGHT, CONFIG,
+                     "cpu")
+
+
+def test_skr_trains_on_a_pack_and_resumes_to_the_same_weights(synthetic, tmp_path,
+                                                             monkeypatch):
+    motions, bodies = synthetic
+    monkeypatch.setattr(training.train, "VALIDATION_LIMIT", 100)   # frames drawn to validate
+    write_pack(tmp_path / "pack.npz", pack_arrays(motions, ACTOR_HIP_HEIGHT, bodies, False))
+    write_datasets(tmp_path, np.random.default_rng(0))     # the T-pose frames (skr_tpose_*)
+    for name in ("skr_train", "skr_val"):                  # never read with a pack
+        (tmp_path / f"{name}.npz").unlink()
+    (tmp_path / "tiny.json").write_text(json.dumps(TINY_RECIPE))
+
+    def train(out, *extra):
+        main(["skr", "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path),
+              "--pack", str(tmp_path / "pack.npz"), "--out", str(tmp_path / out),
+              "--threads", "1", *extra])
+        return torch.load(tmp_path / out / "skr.pt", weights_only=True)
+    whole = train("whole")
+    assert whole["step"] == 6 and len(whole["rows"]) == 2
+    assert all(np.isfinite(row["val_mpjpe"]) and row["val_mpjpe"] > 0 for row in whole["rows"])
+    train("resumed", "--stop-at", "4")
+    resumed = train("resumed", "--resume")
+    for key, value in whole["modules"]["skr"].items():
+        torch.testing.assert_close(resumed["modules"]["skr"][key], value, msg=key)
+    with pytest.raises(SystemExit):
+        main(["skr", "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path),
+              "--pack", str(tmp_path / "tiny.json"), "--out", str(tmp_path / "bad")])
+
+
+def test_weights_trained_on_a_pack_record_it(synthetic, tmp_path):
+    motions, bodies = synthetic
+    write_pack(tmp_path / "pack.npz", pack_arrays(motions, ACTOR_HIP_HEIGHT, bodies, False))
+    recorded = provenance(load_recipe("cpu"), tmp_path, pack=load_pack(tmp_path / "pack.npz"))
+    assert recorded["data"]["skr_online_pack"] == {"trials": {"train": 2, "val": 1},
+                                                   "bodies": {"train": 3, "val": 1},
+                                                   "include_broken": False}
