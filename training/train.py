@@ -15,8 +15,9 @@ file, stages not listed keep its networks, and the export happens after any stag
 recipe.json and the weights' metadata record the recipe as run.
 --resume continues each unfinished stage from its checkpoint; finished stages are skipped.
 ``--pack FILE`` (a data pack, ``training.data.pack``): SKR poses fresh frames for every batch
-on the training device (``training.data.online``) instead of reading ``skr_train.npz``, for a
-GPU, which would run through a build's frames in minutes; the other stages read --data as ever.
+on the training device (``training.data.online``) instead of reading ``skr_train.npz`` (for a
+long run on a GPU, which would otherwise see a build's frames over and over); the other
+stages read --data as ever.
 Validation uses the held-out training subjects and bodies (``*_val.npz``), never the test split.
 """
 import argparse

@@ -1,8 +1,8 @@
 """SKR's training frames drawn afresh for every batch, posed and sampled on the training device.
 
 A build (``datasets.skr_samples``) poses a fixed set of frames once, on the CPU: 20,000 of them
-take about 3 minutes and 0.5 GB. A GPU runs through that many in a minute or two and then
-sees the same clouds again. Here each batch is new: the frames, bodies, turns, shifts and leg
+take about 3 minutes and 0.5 GB, and a long run on a GPU would see the same clouds over and
+over. Here each batch is new: the frames, bodies, turns, shifts and leg
 edits are drawn as ``datasets.skr_poses`` draws them (numpy, cheap), and the heavy part, forward
 kinematics, linear blend skinning and area-uniform surface sampling of the 13,718-vertex
 meshes, runs in torch wherever the model is (``training.kinematics``, the torch twin of the
