@@ -15,7 +15,7 @@ from minretarget.conventions import JOINT_INDEX, NUM_JOINTS  # noqa: E402
 from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # noqa: E402
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
-from training.data.datasets import (DATASETS, BuildConfig, _Frames, augment,  # noqa: E402
+from training.data.datasets import (DATASETS, BuildConfig, Frames, augment,  # noqa: E402
                                      build, crossed_legs, seated_legs)
 
 ACTOR_HIP_HEIGHT = 0.9
@@ -229,7 +229,7 @@ def test_category_power_weighs_the_skr_frames_by_category():
     proportion to the square roots of their frame counts (0.5); frames within one alike;
     finite at powers whose plain powers of the counts would overflow."""
     run = dataclasses.replace(_walk("run", 100), category="run")
-    frames = _Frames.of([_walk("a", 200), run, _walk("b", 100)])              # 300 walk, 100 run
+    frames = Frames.of([_walk("a", 200), run, _walk("b", 100)])              # 300 walk, 100 run
     walking = np.r_[np.ones(200, bool), np.zeros(100, bool), np.ones(100, bool)]
     for power, walk_share in ((1.0, 0.75), (0.0, 0.5), (0.5, np.sqrt(3) / (np.sqrt(3) + 1)),
                               (400.0, 1.0), (-400.0, 0.0)):
@@ -479,10 +479,15 @@ def test_build_command_from_a_pack_and_its_refusals(built, cache, tmp_path, caps
     for extra, message in (
             (["--only", "test"], "holds no test split; build it with --cmu"),
             (["--include-broken"], "was packed without the broken captures"),
-            (["--bodies", "3"], "the build needs 3 train bodies, given 2")):
+            (["--bodies", "3"], "--bodies 3: the build needs 3 train bodies, .*pack.npz "
+                                "holds 2")):
         with pytest.raises(SystemExit, match=message):
             main(common + ["--out", str(tmp_path / "refused")] + extra)
     assert not (tmp_path / "refused").exists()
+    truncated = (tmp_path / "pack.npz").read_bytes()[:1000]
+    (tmp_path / "truncated.npz").write_bytes(truncated)
+    with pytest.raises(SystemExit, match="truncated.npz: cannot read the pack"):
+        main(["build", "--pack", str(tmp_path / "truncated.npz"), "--out", str(tmp_path / "x")])
     np.savez(tmp_path / "other.npz", points=np.zeros(3))
     with pytest.raises(SystemExit, match=r"other.npz: not a data pack, missing \['actor_hip"):
         main(["build", "--pack", str(tmp_path / "other.npz"), "--out", str(tmp_path / "x")])
@@ -495,4 +500,9 @@ def test_a_pack_holds_one_mesh_topology(built, cache):
     other = dataclasses.replace(second, weights=np.roll(second.weights, 1, axis=1))
     with pytest.raises(ValueError, match=f"body {second.name} has other faces or skinning "
                                          f"weights than {first.name}"):
-        pack_arrays(MOTIONS, ACTOR_HIP_HEIGHT, {"train": [first, other], "val": []}, False)
+        pack_arrays(MOTIONS, ACTOR_HIP_HEIGHT, {"train": [first, other], "val": [first]}, False)
+    with pytest.raises(ValueError, match=r"no \['val bodies'\]"):
+        pack_arrays(MOTIONS, ACTOR_HIP_HEIGHT, {"train": [first], "val": []}, False)
+    broken = {**MOTIONS, "train": MOTIONS["train"] + [_walk("07_12", 30)]}
+    with pytest.raises(ValueError, match=r"broken captures \['07_12'\] .* include_broken"):
+        pack_arrays(broken, ACTOR_HIP_HEIGHT, {"train": [first], "val": [first]}, False)

@@ -1,6 +1,8 @@
 """SKR's online frames (training.data.online) against the numpy build, and SKR trained from a
 data pack (training.data.pack): twin poses, area-uniform points, exact resume. No anny: the
 bodies are synthetic meshes, a small triangle riding each joint."""
+import dataclasses
+import hashlib
 import json
 
 import numpy as np
@@ -14,7 +16,7 @@ from test_training import (TINY_RECIPE, random_quaternions, skeleton,  # noqa: E
                            write_datasets)
 from training.data.bodies import Body, pose_body  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
-from training.data.datasets import BuildConfig, _Frames, skr_poses  # noqa: E402
+from training.data.datasets import BuildConfig, Frames, skr_poses  # noqa: E402
 from training.data.online import OnlineFrames, surface_points  # noqa: E402
 from training.data.pack import load_pack, pack_arrays, write_pack  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
@@ -76,7 +78,7 @@ def test_online_frames_draw_and_pose_as_the_numpy_build(synthetic):
     motions, bodies = synthetic
     online = OnlineFrames(motions["train"], bodies["train"], ACTOR_HIP_HEIGHT, CONFIG, "cpu")
     body, rotations, root = online.poses(16, np.random.default_rng(5))
-    expected = skr_poses(_Frames.of(motions["train"]), bodies["train"], 16, ACTOR_HIP_HEIGHT,
+    expected = skr_poses(Frames.of(motions["train"]), bodies["train"], 16, ACTOR_HIP_HEIGHT,
                          np.random.default_rng(5), CONFIG.max_shift, CONFIG.category_power,
                          CONFIG.seated_fraction, CONFIG.crossed_fraction)
     for got, want in zip((body, rotations, root), expected):
@@ -88,6 +90,8 @@ def test_online_frames_draw_and_pose_as_the_numpy_build(synthetic):
         np.testing.assert_allclose(joints[i].numpy(), twin_joints, atol=2e-6)
     batch = online.batch(16, 30, np.random.default_rng(5), torch.Generator().manual_seed(1))
     np.testing.assert_array_equal(batch["joints"].numpy(), joints.numpy())
+    chunked = online.clouds(body, rotations, root, 30, torch.Generator().manual_seed(1), chunk=5)
+    np.testing.assert_array_equal(chunked["joints"].numpy(), joints.numpy())
     # Every point lies on the triangle of some joint: within its 5 cm of that joint.
     distance = (batch["points"][:, :, None] - joints[:, None]).norm(dim=-1).min(-1).values
     assert batch["points"].shape == (16, 30, 3) and float(distance.max()) <= 0.05 + 1e-5
@@ -96,7 +100,7 @@ def test_online_frames_draw_and_pose_as_the_numpy_build(synthetic):
 def test_online_frames_need_one_mesh_topology(synthetic):
     motions, bodies = synthetic
     other = Body(**{**bodies["train"][1].__dict__, "weights": bodies["train"][1].weights[::-1]})
-    with pytest.raises(ValueError, match="one mesh topology and skinning weights"):
+    with pytest.raises(ValueError, match="body b1 has other faces or skinning weights"):
         OnlineFrames(motions["train"], [bodies["train"][0], other], ACTOR_HIP_HEIGHT, CONFIG,
                      "cpu")
 
@@ -123,15 +127,31 @@ def test_skr_trains_on_a_pack_and_resumes_to_the_same_weights(synthetic, tmp_pat
     resumed = train("resumed", "--resume")
     for key, value in whole["modules"]["skr"].items():
         torch.testing.assert_close(resumed["modules"]["skr"][key], value, msg=key)
-    with pytest.raises(SystemExit):
-        main(["skr", "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path),
-              "--pack", str(tmp_path / "tiny.json"), "--out", str(tmp_path / "bad")])
+    for stage, pack in (("skr", "tiny.json"), ("smrm", "pack.npz")):
+        with pytest.raises(SystemExit):
+            main([stage, "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path),
+                  "--pack", str(tmp_path / pack), "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad" / "smrm.pt").exists()
 
 
 def test_weights_trained_on_a_pack_record_it(synthetic, tmp_path):
     motions, bodies = synthetic
     write_pack(tmp_path / "pack.npz", pack_arrays(motions, ACTOR_HIP_HEIGHT, bodies, False))
     recorded = provenance(load_recipe("cpu"), tmp_path, pack=load_pack(tmp_path / "pack.npz"))
-    assert recorded["data"]["skr_online_pack"] == {"trials": {"train": 2, "val": 1},
-                                                   "bodies": {"train": 3, "val": 1},
-                                                   "include_broken": False}
+    digest = hashlib.sha256((tmp_path / "pack.npz").read_bytes()).hexdigest()
+    assert recorded["data"]["skr_online_pack"] == {
+        "sha256": digest, "trials": {"train": 2, "val": 1}, "bodies": {"train": 3, "val": 1},
+        "include_broken": False, "config": dataclasses.asdict(BuildConfig())}
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (a GPU session)")
+def test_online_frames_on_cuda_match_the_cpu(synthetic):
+    """Run first on a GPU machine: the same draws posed on CUDA and on the CPU."""
+    motions, bodies = synthetic
+    on = {device: OnlineFrames(motions["train"], bodies["train"], ACTOR_HIP_HEIGHT, CONFIG,
+                               device) for device in ("cpu", "cuda")}
+    poses = on["cpu"].poses(16, np.random.default_rng(3))
+    vertices = {device: frames.pose(*poses)[0].cpu() for device, frames in on.items()}
+    torch.testing.assert_close(vertices["cuda"], vertices["cpu"], atol=1e-5, rtol=0)
+    batch = on["cuda"].clouds(*poses, 30, torch.Generator("cuda").manual_seed(0), chunk=5)
+    assert batch["points"].device.type == "cuda" and batch["points"].shape == (16, 30, 3)

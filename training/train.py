@@ -274,19 +274,22 @@ def initial_models(recipe, init=None, scratch=()):
     return models
 
 
-def online_skr_data(pack, device, seed):
+# What SKR's online frames are drawn as: a default build's (category power 1, no seated or
+# crossed legs, 2,048-point validation clouds); validation is drawn with its seed whatever the
+# recipe's, so that every run scores the same frames.
+ONLINE_FRAMES = BuildConfig()
+
+
+def online_skr_data(pack, device):
     """SKR's training frames drawn afresh from a data pack (``training.data.online``), and
     VALIDATION_LIMIT validation frames drawn once from its validation split."""
-    config = BuildConfig()       # the draws of the default build (the shipped weights' data)
-
     def frames(split):
         return OnlineFrames(pack.motions[split], pack.bodies[split], pack.actor_hip_height,
-                            config, device)
-    source, rng = frames("val"), np.random.default_rng([seed, 0])
-    generator = torch.Generator(device).manual_seed(seed)
-    chunks = [source.batch(min(64, VALIDATION_LIMIT - start), config.points, rng, generator)
-              for start in range(0, VALIDATION_LIMIT, 64)]
-    return frames("train"), {key: torch.cat([c[key] for c in chunks]) for key in chunks[0]}
+                            ONLINE_FRAMES, device)
+    source = frames("val")
+    poses = source.poses(VALIDATION_LIMIT, np.random.default_rng([ONLINE_FRAMES.seed, 0]))
+    generator = torch.Generator(device).manual_seed(ONLINE_FRAMES.seed)
+    return frames("train"), source.clouds(*poses, ONLINE_FRAMES.points, generator)
 
 
 def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None, pack=None):
@@ -296,7 +299,7 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
     if pack is None:
         train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
     else:
-        train, val = online_skr_data(pack, device, recipe.seed)
+        train, val = online_skr_data(pack, device)
     tpose_train, tpose_val = (load_split(data_dir, f"skr_tpose_{s}", device)
                               for s in ("train", "val"))
     model = (model or SkeletonRegressor(recipe.model)).to(device)
@@ -308,10 +311,10 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
     def online_batch(stage):
         """Fresh frames, as many points as the T-pose clouds (a subset is taken below); the
         draws are seeded by the step, so a resumed stage draws what it would have."""
+        draws = np.random.default_rng([recipe.seed, 1, stage.step])
+        generator = torch.Generator(device).manual_seed(int(draws.integers(2 ** 62)))
         moving = train.batch(stage_recipe.batch_size - tpose_count,
-                             tpose_train["points"].shape[1],
-                             np.random.default_rng([recipe.seed, 1, stage.step]),
-                             torch.Generator(device).manual_seed(recipe.seed + stage.step))
+                             tpose_train["points"].shape[1], draws, generator)
         still = stage.batch(len(tpose_train["points"]), tpose_count)
         return {key: torch.cat([moving[key], tpose_train[key][still]]) for key in moving}
 
@@ -639,9 +642,11 @@ def provenance(recipe, data_dir, init=None, pack=None):
            "data": {k: manifest.get(k) for k in ("config", "counts", "actor_hip_height")}}
     if pack is not None:
         out["data"]["skr_online_pack"] = {
+            "sha256": pack.sha256,
             "trials": {split: len(pack.motions[split]) for split in ("train", "val")},
             "bodies": {split: len(pack.bodies[split]) for split in ("train", "val")},
-            "include_broken": pack.include_broken}
+            "include_broken": pack.include_broken,
+            "config": dataclasses.asdict(ONLINE_FRAMES)}
     if init is not None:
         out["init"] = init.metadata
     return out
@@ -682,9 +687,9 @@ def main(argv=None):
                         help="stop each stage at this step, checkpointed, to --resume later")
     parser.add_argument("--pack", metavar="FILE",
                         help="SKR draws fresh frames every batch from this data pack "
-                             "(python -m training.data pack) and validates on 2,048 drawn "
-                             "once from its validation split; --data still gives the T-pose "
-                             "frames (skr_tpose_*.npz)")
+                             "(python -m training.data pack) and validates on "
+                             f"{VALIDATION_LIMIT:,} drawn once from its validation split; "
+                             "--data still gives the T-pose frames (skr_tpose_*.npz)")
     args = parser.parse_args(argv)
     pack = None
     if args.pack is not None:
@@ -713,6 +718,8 @@ def main(argv=None):
     optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}
     own = tuple(n for n in STAGES if optional.get(n, True))
     stages = tuple(n for n in args.stage if n in own)
+    if pack is not None and "skr" not in stages:
+        parser.error("--pack: only the skr stage draws from a pack, and it is not trained here")
 
     def trained(name):
         """Whether the refiner or denoiser is trained here or loaded from --init: one that

@@ -40,6 +40,16 @@ def _finite_float(text):
     return value
 
 
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def _build(args):
     start = time.perf_counter()
     bodies = None
@@ -51,12 +61,12 @@ def _build(args):
             sys.exit(str(error))
         if args.include_broken and not pack.include_broken:
             sys.exit(f"--include-broken: {args.pack} was packed without the broken captures")
-        if "test" in args.only:
-            if args.only is not DATASETS:
-                sys.exit(f"--only test: {args.pack} holds no test split; build it with --cmu")
-            args.only = tuple(kind for kind in DATASETS if kind != "test")
+        if args.only is not None and "test" in args.only:
+            sys.exit(f"--only test: {args.pack} holds no test split; build it with --cmu")
+        args.only = args.only or tuple(kind for kind in DATASETS if kind != "test")
         args.include_broken = pack.include_broken
         motions, actor_hip_height, bodies = pack.motions, pack.actor_hip_height, pack.bodies
+    args.only = args.only or DATASETS
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
                          points=args.points, skin_samples=args.skin_samples,
                          skin_points=args.skin_points, clip_stride=args.clip_stride,
@@ -66,11 +76,13 @@ def _build(args):
                          include_broken=args.include_broken)
     if args.pack is None:
         motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
-    try:
-        summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
-                        datasets=args.only, bodies=bodies)
-    except ValueError as error:
-        sys.exit(str(error))
+    else:
+        for split, count in (("train", config.bodies), ("val", config.val_bodies)):
+            if len(bodies[split]) < count:
+                sys.exit(f"--bodies {config.bodies}: the build needs {count} {split} bodies, "
+                         f"{args.pack} holds {len(bodies[split])}")
+    summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
+                    datasets=args.only, bodies=bodies)
     counts = summary["counts"]
     print(f"\nbuilt {args.out} in {time.perf_counter() - start:.0f} s "
           f"(datasets {summary['seconds']:.0f} s), {_size(summary['total_bytes'])} in all")
@@ -165,14 +177,14 @@ def main(argv=None):
     build_parser.add_argument("--include-broken", action="store_true",
                               help="keep the broken captures (cmu.BROKEN_TRIALS), as the "
                                    "shipped weights' data did")
-    build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=DATASETS,
+    build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=None,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")
     pack_parser = commands.add_parser("pack", help="pack the training and validation motions "
                                       "and bodies into one file (for a machine without them)")
     pack_parser.add_argument("--cmu", required=True, help="the CMU BVH folder")
     pack_parser.add_argument("--out", required=True, help="output .npz")
-    pack_parser.add_argument("--bodies", type=int, default=_DEFAULTS.bodies,
+    pack_parser.add_argument("--bodies", type=_positive_int, default=_DEFAULTS.bodies,
                              help="training bodies, with the validation bodies a build of "
                              f"that many uses (default {_DEFAULTS.bodies})")
     pack_parser.add_argument("--include-broken", action="store_true",

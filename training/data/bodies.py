@@ -113,6 +113,17 @@ class Body:
         return float(self.vertices[:, 1].max())
 
 
+def check_one_mesh(bodies):
+    """ValueError naming the first of ``bodies`` whose faces or skinning weights differ from
+    the first body's (every anny body shares them: a pack and the online frames keep one copy)."""
+    first = bodies[0]
+    for body in bodies[1:]:
+        if not (np.array_equal(body.faces, first.faces)
+                and np.array_equal(body.weights, first.weights)):
+            raise ValueError(f"body {body.name} has other faces or skinning weights than "
+                             f"{first.name}: one copy of each is kept for all")
+
+
 # ----------------------------------------------------------------------------- posing
 
 def linear_blend_skinning(points, weights, transforms):

@@ -165,7 +165,7 @@ def augment(rotations, root, heading, shift):
 # ----------------------------------------------------------------------------- motions
 
 @dataclasses.dataclass(frozen=True)
-class _Frames:
+class Frames:
     """Every frame of a split's motions, stacked: rotations (N, J, 4), root (N, 3)."""
     rotations: np.ndarray
     root: np.ndarray
@@ -175,7 +175,7 @@ class _Frames:
     @staticmethod
     def of(motions):
         lengths = [len(m.rotations) for m in motions]
-        return _Frames(np.concatenate([m.rotations for m in motions]).astype(np.float32),
+        return Frames(np.concatenate([m.rotations for m in motions]).astype(np.float32),
                        np.concatenate([m.root for m in motions]).astype(np.float32),
                        np.concatenate([[0], np.cumsum(lengths)]),
                        tuple(m.category for m in motions))
@@ -607,7 +607,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     if unknown:
         raise ValueError(f"unknown datasets {unknown}; known: {DATASETS}")
     targets, sources = benchmark_bodies(cache_dir) if "test" in datasets else ((), ())
-    frames = {split: _Frames.of(motions[split]) for split in ("train", "val")}
+    frames = {split: Frames.of(motions[split]) for split in ("train", "val")}
     counts = {"skr_train": config.frames, "skr_val": max(1, config.frames // 10),
               "skr_tpose_train": config.tpose_frames,
               "skr_tpose_val": max(1, config.tpose_frames // 10),

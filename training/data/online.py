@@ -6,14 +6,16 @@ over. Here each batch is new: the frames, bodies, turns, shifts and leg
 edits are drawn as ``datasets.skr_poses`` draws them (numpy, cheap), and the heavy part, forward
 kinematics, linear blend skinning and area-uniform surface sampling of the 13,718-vertex
 meshes, runs in torch wherever the model is (``training.kinematics``, the torch twin of the
-runtime's). So a session with a GPU trains SKR from a data pack (``pack.py``) alone.
+runtime's). So a session with a GPU trains SKR from a data pack (``pack.py``) and the small
+T-pose build made from it (``skr_tpose``).
 """
 import numpy as np
 import torch
 
 from training.kinematics import forward_kinematics, linear_blend_skinning, skinning_transforms
 
-from .datasets import _Frames, skr_poses
+from .bodies import check_one_mesh
+from .datasets import Frames, skr_poses
 
 
 def surface_points(vertices, faces, count, generator=None):
@@ -27,15 +29,15 @@ def surface_points(vertices, faces, count, generator=None):
     Returns:
         (B, P, 3) points, metres, in random order.
     """
-    corners = vertices[:, faces]                                        # (B, F, 3, 3)
-    areas = torch.linalg.cross(corners[:, :, 1] - corners[:, :, 0],
-                               corners[:, :, 2] - corners[:, :, 0]).norm(dim=-1)
+    first, second, third = (vertices[:, faces[:, k]] for k in range(3))  # (B, F, 3) each
+    areas = torch.linalg.cross(second - first, third - first).norm(dim=-1)  # twice the areas
     face = torch.multinomial(areas, count, replacement=True, generator=generator)  # (B, P)
     r1 = torch.rand(face.shape, generator=generator, device=vertices.device).sqrt()
     r2 = torch.rand(face.shape, generator=generator, device=vertices.device)
     weights = torch.stack([1 - r1, r1 * (1 - r2), r1 * r2], -1)          # uniform in a triangle
-    chosen = corners[torch.arange(len(face), device=face.device)[:, None], face]  # (B, P, 3, 3)
-    return (weights[..., None] * chosen).sum(-2)
+    batch = torch.arange(len(face), device=face.device)[:, None, None]
+    corners = vertices[batch, faces[face]]                               # (B, P, 3, 3)
+    return (weights[..., None] * corners).sum(-2)
 
 
 class OnlineFrames:
@@ -51,21 +53,16 @@ class OnlineFrames:
     """
 
     def __init__(self, motions, bodies, actor_hip_height, config, device):
-        self.frames, self.bodies = _Frames.of(motions), bodies
+        check_one_mesh(bodies)
+        self.frames, self.bodies = Frames.of(motions), bodies
         self.actor_hip_height, self.config, self.device = actor_hip_height, config, device
-        first = bodies[0]
-        if any(not (np.array_equal(b.faces, first.faces) and np.array_equal(b.weights,
-                                                                          first.weights))
-               for b in bodies[1:]):
-            raise ValueError("online frames need bodies of one mesh topology and skinning "
-                             "weights")
 
         def tensor(array, dtype=torch.float32):
-            return torch.as_tensor(np.asarray(array), dtype=dtype, device=device)
+            return torch.as_tensor(array, dtype=dtype, device=device)
         self.vertices = tensor(np.stack([b.vertices for b in bodies]))   # (B, V, 3)
         self.tpose_joints = tensor(np.stack([b.joints for b in bodies]))  # (B, J, 3)
-        self.faces = tensor(first.faces, torch.int64)
-        self.weights = tensor(first.weights)
+        self.faces = tensor(bodies[0].faces, torch.int64)
+        self.weights = tensor(bodies[0].weights)
 
     def poses(self, count, rng):
         """``datasets.skr_poses``' draws: (count,) bodies, (count, J, 4) rotations, (count, 3)
@@ -86,11 +83,19 @@ class OnlineFrames:
         transforms = skinning_transforms(joints, global_rotations, tpose)
         return linear_blend_skinning(self.vertices[body], self.weights, transforms), joints
 
+    def clouds(self, body, rotations, root, points, generator=None, chunk=64):
+        """The posed bodies (``pose``' arguments) seen as fresh P-point clouds, ``chunk`` at a
+        time (to bound memory): {'points': (N, P, 3), 'joints': (N, J, 3)}, tensors on the
+        device; ``generator`` a torch Generator on the device for the surface points."""
+        parts = []
+        for start in range(0, len(body), chunk):
+            part = slice(start, start + chunk)
+            vertices, joints = self.pose(body[part], rotations[part], root[part])
+            parts.append((surface_points(vertices, self.faces, points, generator), joints))
+        return {"points": torch.cat([points for points, _ in parts]),
+                "joints": torch.cat([joints for _, joints in parts])}
+
     def batch(self, count, points, rng, generator=None):
-        """``count`` fresh frames: {'points': (count, P, 3), 'joints': (count, J, 3)}, tensors
-        on the device; ``rng`` a numpy Generator for the draws, ``generator`` a torch one on
-        the device for the surface points."""
-        body, rotations, root = self.poses(count, rng)
-        vertices, joints = self.pose(body, rotations, root)
-        return {"points": surface_points(vertices, self.faces, points, generator),
-                "joints": joints}
+        """``count`` fresh frames (``poses`` drawn with the numpy Generator ``rng``, then
+        ``clouds``)."""
+        return self.clouds(*self.poses(count, rng), points, generator)

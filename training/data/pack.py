@@ -11,19 +11,23 @@ Contents (``np.savez_compressed``, loaded without pickle):
     motion_rotations (N, J, 4) float32, motion_root (N, 3) float32: every frame of the
         training and validation trials at 30 fps, trial after trial, exactly as loaded;
     motion_starts (M + 1,) int64 each trial's first frame, then N; motion_names,
-        motion_categories, motion_splits (M,) str ('train' or 'val');
+        motion_categories, motion_splits (M,) str ('train' or 'val'); motion_source_fps (M,)
+        float64 the capture rates they were resampled from;
     actor_hip_height () float64 metres; include_broken () bool (``cmu.BROKEN_TRIALS`` kept);
     body_names, body_splits (B,) str; phenotype_labels (K,) str, body_phenotypes (B, K)
         float64; body_joints (B, J, 3) float32 T-pose joints, exact;
     body_vertices (B, V, 3) float32 T-pose vertices;
     faces (F, 3) int32, skin_weights (V, J) float32: one copy, every anny body has the same
         mesh topology and skinning weights (checked when packing).
-Everything is stored exactly, so a build from a pack is the build from the CMU folder and the
-body cache, array for array (float16 vertices would halve the bodies' 20 MB, but they move
-the sampled points' faces: 5 % of the points of a cloud). With 120 training bodies (and 15
-validation ones) it is 36 MB.
+Everything is stored exactly, so on one machine a build from a pack is the build from the CMU
+folder and the body cache, array for array (float16 vertices would halve the bodies' 20 MB,
+but they move 5 % of a cloud's points to other triangles). With 120 training bodies (and 15
+validation ones) it is 36.4 MB (34.7 MiB).
 """
 import dataclasses
+import hashlib
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -31,8 +35,8 @@ import numpy as np
 from minretarget.atomic import atomic_write
 from minretarget.conventions import FPS
 
-from .bodies import Body, body_from_seed, sampled_body_seeds
-from .cmu import Motion
+from .bodies import Body, body_from_seed, check_one_mesh, sampled_body_seeds
+from .cmu import BROKEN_TRIALS, Motion
 from .datasets import BuildConfig, cmu_motions
 
 SPLITS = ("train", "val")
@@ -46,19 +50,21 @@ def pack_arrays(motions, actor_hip_height, bodies, include_broken):
     """The pack's arrays (module docstring) of ``motions`` {'train', 'val': [Motion]} and
     ``bodies`` {'train', 'val': [Body]}. ValueError if the bodies differ in faces or skinning
     weights."""
+    empty = [f"{split} {kind}" for split in SPLITS for kind, given in
+             (("motions", motions), ("bodies", bodies)) if not given[split]]
+    if empty:
+        raise ValueError(f"a pack needs motions and bodies of both splits; no {empty}")
     trials = [(split, motion) for split in SPLITS for motion in motions[split]]
     every = [body for split in SPLITS for body in bodies[split]]
-    if not trials or not every:
-        raise ValueError("a pack needs at least one motion and one body")
     slow = sorted(m.name for _, m in trials if m.fps != FPS)
     if slow:
         raise ValueError(f"motions {slow} are not at {FPS} fps")
+    broken = sorted(m.name for _, m in trials if m.name in BROKEN_TRIALS)
+    if broken and not include_broken:
+        raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS) but "
+                         "include_broken is False")
+    check_one_mesh(every)
     first = every[0]
-    for body in every[1:]:
-        if not (np.array_equal(body.faces, first.faces)
-                and np.array_equal(body.weights, first.weights)):
-            raise ValueError(f"body {body.name} has other faces or skinning weights than "
-                             f"{first.name}: a pack holds one copy of each")
     labels = sorted(first.phenotype)
     return {
         "motion_rotations": np.concatenate([m.rotations for _, m in trials]).astype(np.float32),
@@ -106,19 +112,24 @@ class Pack:
     actor_hip_height: float
     bodies: dict             # {'train', 'val': [Body]}
     include_broken: bool
+    sha256: str              # of the file: weights trained on it record it
 
 
 def load_pack(path):
     """Read a pack written by ``write_pack``. ValueError names the file if it is not one."""
     path = Path(path)
     try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
         raise ValueError(f"{path}: cannot read the pack ({error})") from None
     missing = sorted(set(KEYS) - set(arrays))
     if missing:
         raise ValueError(f"{path}: not a data pack, missing {missing}")
+    splits = set(arrays["motion_splits"].tolist()) | set(arrays["body_splits"].tolist())
+    if splits != set(SPLITS):
+        raise ValueError(f"{path}: a pack holds the splits {SPLITS}, this one {sorted(splits)}")
     starts = arrays["motion_starts"]
     motions = {"train": [], "val": [], "test": []}
     for i, (name, category, source_fps, split) in enumerate(zip(
@@ -136,4 +147,5 @@ def load_pack(path):
         bodies[split].append(Body(name=name, phenotype=phenotype,
                                   vertices=arrays["body_vertices"][i], faces=arrays["faces"],
                                   joints=arrays["body_joints"][i], weights=arrays["skin_weights"]))
-    return Pack(motions, float(arrays["actor_hip_height"]), bodies, bool(arrays["include_broken"]))
+    return Pack(motions, float(arrays["actor_hip_height"]), bodies,
+                bool(arrays["include_broken"]), digest)
