@@ -757,8 +757,7 @@ def main(argv=None):
     if finished and (stages == own or init is not None):
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
-                       metadata=provenance(recipe, args.data, init,
-                                           pack if "skr" in stages else None),
+                       metadata=provenance(recipe, args.data, init, pack),
                        refine=models["refine"].cpu() if trained("refine") else None,
                        denoise=models["denoise"].cpu() if trained("denoise") else None)
         print(f"exported {path}")

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from .datasets import DATASETS, BuildConfig, build, cmu_motions
+from .datasets import DATASETS, BuildConfig, build, cmu_motions, first_bodies
 
 _DEFAULTS = BuildConfig()
 
@@ -77,10 +77,10 @@ def _build(args):
     if args.pack is None:
         motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
     else:
-        for split, count in (("train", config.bodies), ("val", config.val_bodies)):
-            if len(bodies[split]) < count:
-                sys.exit(f"--bodies {config.bodies}: the build needs {count} {split} bodies, "
-                         f"{args.pack} holds {len(bodies[split])}")
+        try:
+            bodies = first_bodies(bodies, config)
+        except ValueError as error:
+            sys.exit(f"--bodies {config.bodies}: {error} by {args.pack}")
     summary = build(motions, actor_hip_height, args.out, config, cache_dir=args.body_cache,
                     datasets=args.only, bodies=bodies)
     counts = summary["counts"]

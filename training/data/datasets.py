@@ -545,6 +545,33 @@ def save_npz(path, arrays):
 DATASETS = ("skr", "skin", "smrm", "skr_tpose", "test", "sequences")
 
 
+def check_broken(motions, include_broken):
+    """ValueError if ``motions`` ({split: [Motion]}) hold a broken capture
+    (``cmu.BROKEN_TRIALS``) and ``include_broken`` is False."""
+    broken = sorted(m.name for split in motions.values() for m in split
+                    if m.name in BROKEN_TRIALS)
+    if broken and not include_broken:
+        raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS); "
+                         "leave them out or build with include_broken=True")
+
+
+def sampled_bodies(config, cache_dir=None):
+    """{'train', 'val': [Body]}: the ``config.bodies`` and ``config.val_bodies`` sampled bodies
+    a build uses (from the cache, else made with anny)."""
+    return {split: [body_from_seed(seed, cache_dir) for seed in sampled_body_seeds(count, split)]
+            for split, count in (("train", config.bodies), ("val", config.val_bodies))}
+
+
+def first_bodies(bodies, config):
+    """The first ``config.bodies`` and ``config.val_bodies`` of given bodies {'train', 'val':
+    [Body]} (a data pack's); ValueError if there are fewer."""
+    for split, count in (("train", config.bodies), ("val", config.val_bodies)):
+        if len(bodies[split]) < count:
+            raise ValueError(f"the build needs {count} {split} bodies, given "
+                             f"{len(bodies[split])}")
+    return {"train": bodies["train"][:config.bodies], "val": bodies["val"][:config.val_bodies]}
+
+
 def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=None,
           show_progress=True, datasets=DATASETS, bodies=None):
     """Build the datasets into ``out_dir``, deterministically from ``config.seed``.
@@ -576,11 +603,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     old = json.loads(previous.read_text()) if partial else {}
     # A manifest from before a config field existed was built as ADDED_CONFIG_FIELDS says.
     recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else {}
-    broken = sorted(m.name for split in motions.values() for m in split
-                    if m.name in BROKEN_TRIALS)
-    if broken and not config.include_broken:
-        raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS); "
-                         "leave them out or build with include_broken=True")
+    check_broken(motions, config.include_broken)
     wanted = dataclasses.asdict(config)
     if partial and recorded != wanted:
         differing = sorted(k for k, v in wanted.items() if recorded.get(k) != v)
@@ -591,18 +614,8 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     streams = {name: np.random.default_rng([config.seed, k]) for k, name in enumerate(
         ("skr_train", "skr_val", "skin_train", "skin_val", "smrm_train", "smrm_val", "test",
          "skr_tpose_train", "skr_tpose_val", "sequences_train", "sequences_val"))}
-    if bodies is None:
-        bodies = {"train": [body_from_seed(s, cache_dir)
-                            for s in sampled_body_seeds(config.bodies, "train")],
-                  "val": [body_from_seed(s, cache_dir)
-                          for s in sampled_body_seeds(config.val_bodies, "val")]}
-    else:
-        for split, count in (("train", config.bodies), ("val", config.val_bodies)):
-            if len(bodies[split]) < count:
-                raise ValueError(f"the build needs {count} {split} bodies, given "
-                                 f"{len(bodies[split])}")
-        bodies = {"train": bodies["train"][:config.bodies],
-                  "val": bodies["val"][:config.val_bodies]}
+    bodies = (sampled_bodies(config, cache_dir) if bodies is None
+              else first_bodies(bodies, config))
     unknown = sorted(set(datasets) - set(DATASETS))
     if unknown:
         raise ValueError(f"unknown datasets {unknown}; known: {DATASETS}")

@@ -26,6 +26,7 @@ validation ones) it is 36.4 MB (34.7 MiB).
 """
 import dataclasses
 import hashlib
+import io
 import zipfile
 import zlib
 from pathlib import Path
@@ -35,9 +36,9 @@ import numpy as np
 from minretarget.atomic import atomic_write
 from minretarget.conventions import FPS
 
-from .bodies import Body, body_from_seed, check_one_mesh, sampled_body_seeds
-from .cmu import BROKEN_TRIALS, Motion
-from .datasets import BuildConfig, cmu_motions
+from .bodies import Body, check_one_mesh
+from .cmu import Motion
+from .datasets import BuildConfig, check_broken, cmu_motions, sampled_bodies
 
 SPLITS = ("train", "val")
 KEYS = ("motion_rotations", "motion_root", "motion_starts", "motion_names", "motion_categories",
@@ -59,10 +60,7 @@ def pack_arrays(motions, actor_hip_height, bodies, include_broken):
     slow = sorted(m.name for _, m in trials if m.fps != FPS)
     if slow:
         raise ValueError(f"motions {slow} are not at {FPS} fps")
-    broken = sorted(m.name for _, m in trials if m.name in BROKEN_TRIALS)
-    if broken and not include_broken:
-        raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS) but "
-                         "include_broken is False")
+    check_broken({split: motions[split] for split in SPLITS}, include_broken)
     check_one_mesh(every)
     first = every[0]
     labels = sorted(first.phenotype)
@@ -97,9 +95,7 @@ def make_pack(cmu_dir, path, bodies=BuildConfig.bodies, include_broken=False, ca
     """Load the CMU trials and the first ``bodies`` training bodies (and the validation bodies
     a build of that many uses) and write them to ``path``. Returns the arrays."""
     motions, actor_hip_height = cmu_motions(cmu_dir, show_progress, include_broken)
-    val_bodies = BuildConfig(bodies=bodies).val_bodies
-    chosen = {split: [body_from_seed(seed, cache_dir) for seed in sampled_body_seeds(count, split)]
-              for split, count in (("train", bodies), ("val", val_bodies))}
+    chosen = sampled_bodies(BuildConfig(bodies=bodies), cache_dir)
     arrays = pack_arrays(motions, actor_hip_height, chosen, include_broken)
     write_pack(path, arrays)
     return arrays
@@ -119,8 +115,9 @@ def load_pack(path):
     """Read a pack written by ``write_pack``. ValueError names the file if it is not one."""
     path = Path(path)
     try:
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-        with np.load(path, allow_pickle=False) as data:
+        contents = path.read_bytes()          # read once: hashed, then unpacked
+        digest = hashlib.sha256(contents).hexdigest()
+        with np.load(io.BytesIO(contents), allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
         raise ValueError(f"{path}: cannot read the pack ({error})") from None
