@@ -106,7 +106,7 @@ def test_online_frames_need_one_mesh_topology(synthetic):
 
 
 def test_skr_trains_on_a_pack_and_resumes_to_the_same_weights(synthetic, tmp_path,
-                                                             monkeypatch):
+                                                             monkeypatch, capsys):
     motions, bodies = synthetic
     monkeypatch.setattr(training.train, "VALIDATION_LIMIT", 100)   # frames drawn to validate
     write_pack(tmp_path / "pack.npz", pack_arrays(motions, ACTOR_HIP_HEIGHT, bodies, False))
@@ -127,6 +127,14 @@ def test_skr_trains_on_a_pack_and_resumes_to_the_same_weights(synthetic, tmp_pat
     resumed = train("resumed", "--resume")
     for key, value in whole["modules"]["skr"].items():
         torch.testing.assert_close(resumed["modules"]["skr"][key], value, msg=key)
+    # A resume on other frames than the checkpoint's (here: the built ones) is refused.
+    train("switched", "--stop-at", "4")
+    (tmp_path / "built").mkdir()
+    write_datasets(tmp_path / "built", np.random.default_rng(0))
+    with pytest.raises(SystemExit):
+        main(["skr", "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path / "built"),
+              "--out", str(tmp_path / "switched"), "--resume"])
+    assert "skr.pt trained on frames drawn from pack" in capsys.readouterr().err
     for stage, pack in (("skr", "tiny.json"), ("smrm", "pack.npz")):
         with pytest.raises(SystemExit):
             main([stage, "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path),

@@ -79,11 +79,17 @@ def learning_rate(step, steps, base):
     return base * (0.1 + 0.45 * (1 + math.cos(math.pi * progress)))
 
 
-class Stage:
-    """The loop every stage shares: batches, schedule, logging, evaluation, checkpoints."""
+class ResumeMismatch(ValueError):
+    """A checkpoint made on other training data than the resuming run's."""
 
-    def __init__(self, name, run_dir, modules, optimizers, steps, eval_every, seed):
-        self.name, self.run_dir = name, Path(run_dir)
+
+class Stage:
+    """The loop every stage shares: batches, schedule, logging, evaluation, checkpoints.
+    ``source`` names the training data where a stage can draw from more than one (SKR: built
+    frames or a pack); the checkpoint keeps it, so that a resume on other data is refused."""
+
+    def __init__(self, name, run_dir, modules, optimizers, steps, eval_every, seed, source=None):
+        self.name, self.run_dir, self.source = name, Path(run_dir), source
         self.modules, self.optimizers = modules, optimizers
         self.steps, self.eval_every = steps, eval_every
         self.base_rates = {k: o.param_groups[0]["lr"] for k, o in optimizers.items()}
@@ -100,7 +106,8 @@ class Stage:
         state = {"step": self.step, "rows": self.rows, "running": self.running,
                  "modules": {k: m.state_dict() for k, m in self.modules.items()},
                  "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-                 "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state()}
+                 "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
+                 "source": self.source}
         buffer = io.BytesIO()
         torch.save(state, buffer)
         with atomic_write(self.checkpoint_path) as file:
@@ -108,6 +115,9 @@ class Stage:
 
     def load(self):
         state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+        if "source" in state and state["source"] != self.source:  # older checkpoints lack it
+            raise ResumeMismatch(f"{self.checkpoint_path} trained on {state['source']}, this "
+                                 f"run on {self.source}: resume with the same data")
         for key, module in self.modules.items():
             module.load_state_dict(state["modules"][key])
         for key, optimizer in self.optimizers.items():
@@ -304,8 +314,9 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
                               for s in ("train", "val"))
     model = (model or SkeletonRegressor(recipe.model)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
+    source = "built frames" if pack is None else f"frames drawn from pack {pack.sha256}"
     stage = Stage("skr", run_dir, {"skr": model}, {"skr": optimizer}, stage_recipe.steps,
-                  stage_recipe.eval_every, recipe.seed)
+                  stage_recipe.eval_every, recipe.seed, source)
     tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
 
     def online_batch(stage):
@@ -750,8 +761,11 @@ def main(argv=None):
     models, finished = initial_models(recipe, init, args.scratch), True
     for name in stages:
         start = time.perf_counter()
-        models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
-                                            args.resume, args.stop_at, models[name])
+        try:
+            models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
+                                                args.resume, args.stop_at, models[name])
+        except ResumeMismatch as error:
+            parser.error(f"--resume: {error}")
         print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
         finished = finished and done
     if finished and (stages == own or init is not None):

@@ -24,10 +24,11 @@ _DEFAULTS = BuildConfig()
 
 
 def _size(num_bytes):
-    for unit in ("B", "KB", "MB", "GB"):
-        if num_bytes < 1024 or unit == "GB":
+    """Decimal units (1 MB = 10^6 bytes), as the docs quote file sizes."""
+    for unit in ("B", "kB", "MB", "GB"):
+        if num_bytes < 1000 or unit == "GB":
             return f"{num_bytes:.1f} {unit}" if unit != "B" else f"{num_bytes} B"
-        num_bytes /= 1024
+        num_bytes /= 1000
 
 
 def _finite_float(text):
