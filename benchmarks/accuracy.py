@@ -76,7 +76,7 @@ from minretarget.kinematics import forward_kinematics, leg_length, skinning_tran
 from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts, foot_speeds
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
-from minretarget.weights import load_weights
+from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
@@ -91,6 +91,15 @@ QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
 # Paired comparisons, sequence by sequence, printed when a run has both rows.
 PAIRS = (("model", "analytic"), ("model, mirrored source", "analytic, mirrored source"))
+
+
+def weights_record(path, weights):
+    """What a saved result was measured with: the weights file as given ("shipped default"
+    when none was), the SHA-256 of its bytes (so a file measured under one name and shipped
+    under another is still recognised) and the metadata recorded in it."""
+    return {"weights": path or "shipped default",
+            "weights_sha256": file_sha256(DEFAULT_WEIGHTS if path is None else path),
+            "weights_metadata": weights.metadata}
 
 
 def load_sequence(path, frames=None):
@@ -396,9 +405,8 @@ def main(argv=None):
         write_text(args.markdown, text + "\n")
     if args.json:
         write_text(args.json, json.dumps(
-            {**summary, "per_sequence": results, "weights": args.weights or "shipped default",
-             "weights_metadata": weights.metadata, "quick": args.quick,
-             "seconds": round(seconds, 1)}, indent=2))
+            {**summary, "per_sequence": results, **weights_record(args.weights, weights),
+             "quick": args.quick, "seconds": round(seconds, 1)}, indent=2))
 
 
 def summarize(results, split, other=None, other_name=None):

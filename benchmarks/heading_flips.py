@@ -36,7 +36,7 @@ from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import load_sequence  # noqa: E402
+from accuracy import load_sequence, weights_record  # noqa: E402
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
 TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
@@ -161,7 +161,7 @@ def main(argv=None):
             file.write(json.dumps({"frames": frames, "summary": summary,
                                    "truth_largest_turn_degrees": largest,
                                    "per_sequence": results, "seconds": round(seconds, 1),
-                                   "weights": args.weights or "shipped default"},
+                                   **weights_record(args.weights, weights)},
                                   indent=2).encode())
 
 

@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import CONTACT_HEIGHT, load_sequence, sequence_metrics  # noqa: E402
+from accuracy import (CONTACT_HEIGHT, load_sequence, sequence_metrics,  # noqa: E402
+                      weights_record)
 
 from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, PARENTS, UP_AXIS  # noqa: E402
 from minretarget.metrics import foot_contacts, foot_sliding, foot_speeds, jitter  # noqa: E402
@@ -187,8 +188,8 @@ def main(argv=None):
     print(f"\n{seconds:.0f} s")
     (out / "renders.json").write_text(json.dumps(
         {"per_sequence": results, "contact_height": CONTACT_HEIGHT,
-         "knee_backward_deg": KNEE_BACKWARD_DEG, "weights": args.weights or "shipped default",
-         "weights_metadata": weights.metadata, "seconds": round(seconds, 1)}, indent=2))
+         "knee_backward_deg": KNEE_BACKWARD_DEG, **weights_record(args.weights, weights),
+         "seconds": round(seconds, 1)}, indent=2))
 
 
 if __name__ == "__main__":

@@ -43,7 +43,8 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from accuracy import load_sequence, run_sequence, select_sequences, sequence_metrics
+from accuracy import (load_sequence, run_sequence, select_sequences, sequence_metrics,
+                      weights_record)
 from minretarget.metrics import METRIC_NAMES, acceleration_error, procrustes_align
 from minretarget.weights import load_weights
 from training.data.bodies import benchmark_bodies, posed_clouds
@@ -257,6 +258,10 @@ def main(argv=None):
                         help="first frames of each sequence")
     parser.add_argument("--seed", type=int, default=0, help="seed of every perturbation")
     args = parser.parse_args(argv)
+    fewest_kept = args.frames - round(max(DROP_FRACTIONS) * args.frames)
+    if fewest_kept < 3:        # refused now, not after minutes: Acc needs three frames
+        parser.error(f"--frames {args.frames}: dropping {max(DROP_FRACTIONS):.0%} of them "
+                     f"leaves {fewest_kept}, and the metrics need at least 3 (use 6 or more)")
     started = time.perf_counter()
     weights = load_weights(args.weights)
     paths, _ = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")), quick=True)
@@ -314,8 +319,7 @@ def main(argv=None):
         Path(args.json).write_text(json.dumps(
             {"sweeps": report, "sequences": [str(s["name"]) for s in sequences],
              "frames_per_sequence": args.frames, "stored_points": stored, "seed": args.seed,
-             "weights": args.weights or "shipped default", "weights_metadata": weights.metadata,
-             "seconds": round(seconds, 1)}, indent=2))
+             **weights_record(args.weights, weights), "seconds": round(seconds, 1)}, indent=2))
 
 
 if __name__ == "__main__":

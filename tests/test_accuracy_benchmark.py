@@ -100,3 +100,21 @@ def test_compare_pairs_the_model_with_a_saved_runs_model(tmp_path, capsys):
         accuracy.main(["--from-json", str(this), "--compare", str(other)])
     assert stop.value.code == 2
     assert "scored test sequences (quick), this run validation" in capsys.readouterr().err
+
+
+def test_weights_record_names_the_bytes_measured(tmp_path):
+    """A saved run records the weights' SHA-256: the shipped file's matches the one recorded
+    beside it, and a copy under another name records the same digest, its path as given."""
+    weights = accuracy.load_weights()
+    shipped = accuracy.weights_record(None, weights)
+    recorded = (accuracy.DEFAULT_WEIGHTS.with_suffix(".sha256")).read_text().split()[0]
+    assert shipped["weights"] == "shipped default" and shipped["weights_sha256"] == recorded
+    copy = tmp_path / "candidate.npz"
+    copy.write_bytes(accuracy.DEFAULT_WEIGHTS.read_bytes())
+    record = accuracy.weights_record(str(copy), weights)
+    assert record["weights"] == str(copy) and record["weights_sha256"] == recorded
+    assert record["weights_metadata"] == weights.metadata
+    changed = bytearray(copy.read_bytes())
+    changed[-1] ^= 1                                       # one bit flipped: another digest
+    copy.write_bytes(bytes(changed))
+    assert accuracy.weights_record(str(copy), weights)["weights_sha256"] != recorded

@@ -119,3 +119,20 @@ def test_pooled_weights_by_frames_and_skips_empty_acc():
     pooled = robustness.pooled([result(10, 0, 1.0), result(30, 5, 3.0)])
     assert pooled["model"]["MPJPE"] == pytest.approx(2.5)
     assert pooled["analytic"]["Acc"] == pytest.approx(3.0)
+
+
+
+@pytest.mark.parametrize("frames", [1, 3, 4])
+def test_too_few_frames_for_the_drop_sweep_is_refused_at_once(frames, capsys):
+    """Half of 4 frames or fewer dropped leaves fewer than the 3 the metrics need: refused by
+    the parser, naming the count, before any weights or data are read."""
+    with pytest.raises(SystemExit) as exit_info:
+        robustness.main(["--frames", str(frames), "--data", "/nonexistent"])
+    assert exit_info.value.code == 2 and f"--frames {frames}" in capsys.readouterr().err
+
+
+def test_six_frames_pass_the_check():
+    """6 frames keep 3 at the largest drop: the run goes on, and stops at the missing data."""
+    with pytest.raises(SystemExit) as exit_info:
+        robustness.main(["--frames", "6", "--data", "/nonexistent"])
+    assert "no test sequence" in str(exit_info.value.code)
