@@ -258,7 +258,7 @@ def main(argv=None):
                         help="first frames of each sequence")
     parser.add_argument("--seed", type=int, default=0, help="seed of every perturbation")
     args = parser.parse_args(argv)
-    fewest_kept = args.frames - round(max(DROP_FRACTIONS) * args.frames)
+    fewest_kept = len(drop_frames(args.frames, max(DROP_FRACTIONS), np.random.default_rng()))
     if fewest_kept < 3:        # refused now, not after minutes: Acc needs three frames
         parser.error(f"--frames {args.frames}: dropping {max(DROP_FRACTIONS):.0%} of them "
                      f"leaves {fewest_kept}, and the metrics need at least 3 (use 6 or more)")

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from minretarget.metrics import METRIC_NAMES
+from minretarget.weights import checksum_path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import accuracy  # noqa: E402
@@ -107,7 +108,7 @@ def test_weights_record_names_the_bytes_measured(tmp_path):
     beside it, and a copy under another name records the same digest, its path as given."""
     weights = accuracy.load_weights()
     shipped = accuracy.weights_record(None, weights)
-    recorded = (accuracy.DEFAULT_WEIGHTS.with_suffix(".sha256")).read_text().split()[0]
+    recorded = checksum_path(accuracy.DEFAULT_WEIGHTS).read_text().split()[0]
     assert shipped["weights"] == "shipped default" and shipped["weights_sha256"] == recorded
     copy = tmp_path / "candidate.npz"
     copy.write_bytes(accuracy.DEFAULT_WEIGHTS.read_bytes())

@@ -121,7 +121,6 @@ def test_pooled_weights_by_frames_and_skips_empty_acc():
     assert pooled["analytic"]["Acc"] == pytest.approx(3.0)
 
 
-
 @pytest.mark.parametrize("frames", [1, 3, 4])
 def test_too_few_frames_for_the_drop_sweep_is_refused_at_once(frames, capsys):
     """Half of 4 frames or fewer dropped leaves fewer than the 3 the metrics need: refused by
