@@ -45,7 +45,8 @@ import numpy as np
 
 from accuracy import (load_sequence, run_sequence, select_sequences, sequence_metrics,
                       weights_record)
-from minretarget.metrics import METRIC_NAMES, acceleration_error, procrustes_align
+from minretarget.metrics import (ACCELERATION_FRAMES, METRIC_NAMES, acceleration_error,
+                                 procrustes_align)
 from minretarget.weights import load_weights
 from training.data.bodies import benchmark_bodies, posed_clouds
 
@@ -259,9 +260,10 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0, help="seed of every perturbation")
     args = parser.parse_args(argv)
     fewest_kept = len(drop_frames(args.frames, max(DROP_FRACTIONS), np.random.default_rng()))
-    if fewest_kept < 3:        # refused now, not after minutes: Acc needs three frames
+    if fewest_kept < ACCELERATION_FRAMES:        # refused now, not after minutes
         parser.error(f"--frames {args.frames}: dropping {max(DROP_FRACTIONS):.0%} of them "
-                     f"leaves {fewest_kept}, and the metrics need at least 3 (use 6 or more)")
+                     f"leaves {fewest_kept}, and the metrics need at least "
+                     f"{ACCELERATION_FRAMES} (use 6 or more)")
     started = time.perf_counter()
     weights = load_weights(args.weights)
     paths, _ = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")), quick=True)

@@ -42,6 +42,9 @@ from minretarget.skr import regress_joints
 from minretarget.smrm import retarget_step
 from minretarget.weights import load_weights
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from accuracy import weights_record  # noqa: E402
+
 DEFAULT_SETTING = (2048, 13718)
 SETTINGS = [(p, v) for p in (1024, 2048, 6890) for v in (6890, 13718)]
 
@@ -342,7 +345,7 @@ def main():
     torch.set_num_threads(args.threads)
     weights = load_weights(args.weights)
     repeats = 15 if args.quick else 30
-    results = {"weights": args.weights or "shipped default", "threads": args.threads,
+    results = {**weights_record(args.weights, weights), "threads": args.threads,
                "minretarget_workers": workers, "minretarget_blas_threads": blas_threads,
                "config": json.loads(weights.config.to_json()),
                "machine": {"processor": platform.processor() or platform.machine(),

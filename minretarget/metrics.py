@@ -48,6 +48,8 @@ from .conventions import FPS, JOINT_INDEX, UP_AXIS
 
 # Each metric's name in the tables, in the order ``evaluate`` returns them.
 METRIC_NAMES = ("MPJPE", "PA-MPJPE", "Acc", "PA-Acc", "MPVD", "PA-MPVD", "MEDL")
+# The fewest frames a sequence needs for a second difference (Acc, PA-Acc, jitter).
+ACCELERATION_FRAMES = 3
 
 
 # ----------------------------------------------------------------------------- input checks
@@ -173,7 +175,7 @@ def acceleration_error(pred, gt):
     Returns:
         float, metres per frame^2 (not per s^2: multiply by FPS ** 2 = 900 for m/s^2).
     """
-    pred, gt = _as_pair(pred, gt, min_frames=3)
+    pred, gt = _as_pair(pred, gt, min_frames=ACCELERATION_FRAMES)
     return _mean_distance(_second_difference(pred), _second_difference(gt))
 
 
@@ -186,7 +188,7 @@ def pa_acceleration_error(pred, gt):
     Returns:
         float, metres per frame^2.
     """
-    pred, gt = _as_pair(pred, gt, min_frames=3)
+    pred, gt = _as_pair(pred, gt, min_frames=ACCELERATION_FRAMES)
     aligned = procrustes_align(pred, gt)                            # (T, N, 3)
     return _mean_distance(_second_difference(aligned), _second_difference(gt))
 
@@ -294,8 +296,9 @@ def jitter(points):
         ``|x[t+1] - 2 x[t] + x[t-1]|``; multiply by ``FPS ** 2`` for m/s^2.
     """
     points = _as_float64(points, "points", sequence=True)
-    if points.shape[0] < 3:
-        raise ValueError(f"points need at least 3 frames, got shape {points.shape}")
+    if points.shape[0] < ACCELERATION_FRAMES:
+        raise ValueError(f"points need at least {ACCELERATION_FRAMES} frames, got shape "
+                         f"{points.shape}")
     return float(np.linalg.norm(_second_difference(points), axis=-1).mean())
 
 
@@ -370,8 +373,10 @@ def evaluate(pred_joints, gt_joints, pred_points, gt_points, k=6, rest_points=No
         "PA-MPVD" and "MEDL" in metres; "Acc" and "PA-Acc", taken on the joints, in metres
         per frame^2.
     """
-    pred_joints, gt_joints = _as_pair(pred_joints, gt_joints, ("pred_joints", "gt_joints"), 3)
-    pred_points, gt_points = _as_pair(pred_points, gt_points, ("pred_points", "gt_points"), 3)
+    pred_joints, gt_joints = _as_pair(pred_joints, gt_joints, ("pred_joints", "gt_joints"),
+                                      ACCELERATION_FRAMES)
+    pred_points, gt_points = _as_pair(pred_points, gt_points, ("pred_points", "gt_points"),
+                                      ACCELERATION_FRAMES)
     if pred_joints.shape[0] != pred_points.shape[0]:
         raise ValueError(f"joints and points must have the same number of frames T, got "
                          f"pred_joints {pred_joints.shape} and pred_points {pred_points.shape}")
