@@ -10,9 +10,10 @@ from minretarget.bvh import parse_bvh, read_bvh, resample, world_transforms
 from minretarget.conventions import JOINT_INDEX
 from minretarget.kinematics import forward_kinematics
 from minretarget.skeletons import CMU_BONES, canonical_world
-from training.data.cmu import (BROKEN_FLOOR_HEIGHT, BROKEN_TRIALS, LEAD_IN_FRAMES, Motion,
-                               capture_fps, cmu_tpose_joints, floor_height, list_trials,
-                               load_motion, local_quaternions, tpose_joints)
+from training.data.cmu import (ANKLE_LIMIT_DEGREES, BROKEN_FLOOR_HEIGHT, BROKEN_TRIALS,
+                               LEAD_IN_FRAMES, MIN_SEGMENT_FRAMES, Motion, broken_ankle_frames,
+                               capture_fps, clean_segments, cmu_tpose_joints, floor_height,
+                               list_trials, load_motion, local_quaternions, tpose_joints)
 
 CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu"
 WALK = CMU_DIR / "cgspeed" / "02" / "02_01.bvh.gz"
@@ -190,6 +191,49 @@ def test_list_trials_leaves_out_broken_captures_unless_asked(tmp_path):
         "07_12", "09_10", "09_11"]
 
 
+def _turned_ankles(degrees, joint="left_ankle"):
+    """(T, J, 4) identity rotations but ``joint``'s, turned by each of ``degrees`` about an
+    axis that is neither the foot's length nor across it."""
+    axis = np.array([0.6, 0.0, 0.8])
+    half = np.radians(np.asarray(degrees, dtype=np.float64)) / 2
+    rotations = np.zeros((len(half), 22, 4), np.float32)
+    rotations[..., 0] = 1
+    rotations[:, JOINT_INDEX[joint], 0] = np.cos(half)
+    rotations[:, JOINT_INDEX[joint], 1:] = np.sin(half)[:, None] * axis
+    return rotations
+
+
+def test_broken_ankle_frames_are_those_turned_past_the_limit_on_either_side():
+    limit = ANKLE_LIMIT_DEGREES
+    for joint in ("left_ankle", "right_ankle"):
+        turned = _turned_ankles([0, 45, limit - 1, limit + 1, 179, -(limit + 1)], joint)
+        assert broken_ankle_frames(turned).tolist() == [False, False, False, True, True, True]
+    # the same rotation with q and -q (w < 0): an angle, not a sign
+    flipped = -_turned_ankles([limit + 1, 30])
+    assert broken_ankle_frames(flipped).tolist() == [True, False]
+    # other joints may turn as far as they like
+    assert not broken_ankle_frames(_turned_ankles([170, 179], "left_knee")).any()
+
+
+def test_clean_segments_cut_the_broken_frames_and_the_short_runs_between_them():
+    degrees = np.zeros(120)
+    degrees[40:45] = degrees[100] = 170          # clean runs 0-39, 45-99 and 101-119
+    rotations = _turned_ankles(degrees, "right_ankle")
+    root = np.arange(120 * 3, dtype=np.float32).reshape(120, 3)
+    motion = Motion("05_06", rotations, root, 30, "dance", 120.0)
+    segments = clean_segments(motion)
+    assert [m.name for m in segments] == ["05_06@0", "05_06@45"]    # 19 frames < the minimum
+    assert 101 + MIN_SEGMENT_FRAMES > 120
+    for segment, (start, end) in zip(segments, ((0, 40), (45, 100))):
+        np.testing.assert_array_equal(segment.rotations, rotations[start:end])
+        np.testing.assert_array_equal(segment.root, root[start:end])
+        assert (segment.fps, segment.category, segment.source_fps) == (30, "dance", 120.0)
+    whole = Motion("08_01", _turned_ankles(np.full(10, 90.0)), root[:10], 30, "walk", 120.0)
+    assert clean_segments(whole)[0] is whole and len(clean_segments(whole)) == 1
+    assert clean_segments(replace(motion, rotations=_turned_ankles(np.full(120, 170.0)),
+                                  root=root)) == []
+
+
 def test_the_dance_set_names_the_trials_it_cannot_find(tmp_path):
     from training.data.datasets import dance_sequences
     (tmp_path / "cgspeed" / "05").mkdir(parents=True)
@@ -215,6 +259,29 @@ def test_the_broken_trials_are_the_sunken_ones():
         height = floor_height(load_motion(trials[name].path), tpose)
         assert (height < BROKEN_FLOOR_HEIGHT) == (name in BROKEN_TRIALS), (name, height)
         assert name in BROKEN_TRIALS or abs(height) < 0.2, (name, height)
+
+
+@needs_cmu
+def test_broken_feet_are_in_training_dances_only_and_the_loaded_motions_are_cut_around_them():
+    """The measured 05_06 and salsa_01 runs (cmu.ANKLE_LIMIT_DEGREES' comment); no test trial
+    has a broken foot; cmu_motions cuts them unless asked to keep them."""
+    from training.data.datasets import cmu_motions
+    trials = {t.name: t for t in list_trials(CMU_DIR)}
+    salsa = np.flatnonzero(broken_ankle_frames(load_motion(trials["salsa_01"].path).rotations))
+    assert (salsa.min(), salsa.max(), len(salsa)) == (356, 448, 93)
+    assert broken_ankle_frames(load_motion(trials["05_06"].path).rotations).sum() == 179
+    motions, _ = cmu_motions(CMU_DIR, show_progress=False)
+    kept, _ = cmu_motions(CMU_DIR, show_progress=False, keep_broken_ankles=True)
+    for split in motions:
+        assert not any(broken_ankle_frames(m.rotations).any() for m in motions[split])
+    assert [m.name for m in motions["test"]] == [m.name for m in kept["test"]]
+    assert [m.name for m in motions["val"]] == [m.name for m in kept["val"]]
+    assert [m.name for m in motions["train"] if m.name.startswith("salsa_01")] == [
+        "salsa_01@0", "salsa_01@449"]
+    frames = {split: sum(len(m.rotations) for m in motions[split]) for split in motions}
+    kept_frames = {split: sum(len(m.rotations) for m in kept[split]) for split in kept}
+    assert kept_frames["train"] - frames["train"] == 630          # 602 broken, 28 in short runs
+    assert (frames["val"], frames["test"]) == (kept_frames["val"], kept_frames["test"])
 
 
 @needs_cmu

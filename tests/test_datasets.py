@@ -419,9 +419,9 @@ def test_broken_captures_need_include_broken_and_old_builds_count_as_having_them
     with pytest.raises(ValueError, match=r"broken captures \['07_12'\]"):
         build(broken, ACTOR_HIP_HEIGHT, tmp_path / "a", TINY, show_progress=False)
     old_config = {k: v for k, v in dataclasses.asdict(TINY).items()
-                  if k not in ("include_broken", "seated_fraction")}
+                  if k not in ("include_broken", "seated_fraction", "keep_broken_ankles")}
     (tmp_path / "manifest.json").write_text(json.dumps({"config": old_config}))
-    with pytest.raises(ValueError, match=r"differs in \['include_broken'\]"):
+    with pytest.raises(ValueError, match=r"differs in \['include_broken', 'keep_broken_ankles'\]"):
         build(MOTIONS, ACTOR_HIP_HEIGHT, tmp_path, TINY, show_progress=False,
               datasets=("skin",))
     kept = BuildConfig(**{**TINY.__dict__, "include_broken": True})
@@ -429,6 +429,25 @@ def test_broken_captures_need_include_broken_and_old_builds_count_as_having_them
         build(broken, ACTOR_HIP_HEIGHT, tmp_path, BuildConfig(**{**kept.__dict__, "seed": 9}),
               show_progress=False, datasets=("skin",))
     assert "include_broken" not in str(refused.value).split("differs in")[1]
+
+
+def test_motions_with_broken_feet_are_refused_unless_kept(tmp_path):
+    """A frame whose ankle turns past cmu.ANKLE_LIMIT_DEGREES is refused unless the config
+    keeps such frames; a segment of a broken capture is still a broken capture."""
+    rotations = MOTIONS["train"][0].rotations.copy()
+    rotations[7, JOINT_INDEX["left_ankle"]] = [np.cos(1.4), np.sin(1.4), 0, 0]   # 160 degrees
+    twisted = dataclasses.replace(MOTIONS["train"][0], name="salsa_01", rotations=rotations)
+    with pytest.raises(ValueError, match=r"feet turn further than an ankle can .*"
+                                         r"\{'salsa_01': 1\}.*keep_broken_ankles=True"):
+        build({**MOTIONS, "train": [twisted]}, ACTOR_HIP_HEIGHT, tmp_path / "a", TINY,
+              show_progress=False)
+    with pytest.raises(ValueError, match=r"broken captures \['07_12@45'\]"):
+        build({**MOTIONS, "train": [_walk("07_12@45", 30)]}, ACTOR_HIP_HEIGHT, tmp_path / "b",
+              TINY, show_progress=False)
+    kept = BuildConfig(**{**TINY.__dict__, "keep_broken_ankles": True})
+    summary = build({**MOTIONS, "train": [twisted]}, ACTOR_HIP_HEIGHT, tmp_path / "c", kept,
+                    show_progress=False, datasets=("smrm",))
+    assert summary["trials"]["train"] == ["salsa_01"]
 
 
 # ----------------------------------------------------------------------------- data packs
@@ -451,6 +470,7 @@ def test_a_build_from_a_pack_is_the_build_from_the_motions_and_cache_without_ann
     monkeypatch.setitem(sys.modules, "anny", None)      # importing anny now fails
     pack = load_pack(tmp_path / "pack.npz")
     assert pack.actor_hip_height == ACTOR_HIP_HEIGHT and not pack.include_broken
+    assert not pack.keep_broken_ankles
     assert [m.name for m in pack.motions["train"]] == ["train_a", "train_b"]
     assert pack.motions["test"] == []
     assert [b.name for b in pack.bodies["val"]] == [b.name for b in chosen["val"]]
@@ -479,6 +499,7 @@ def test_build_command_from_a_pack_and_its_refusals(built, cache, tmp_path, caps
     for extra, message in (
             (["--only", "test"], "holds no test split; build it with --cmu"),
             (["--include-broken"], "was packed without the broken captures"),
+            (["--keep-broken-ankles"], "was packed without the broken feet"),
             (["--bodies", "3"], "--bodies 3: the build needs 3 train bodies, given 2 by "
                                 ".*pack.npz")):
         with pytest.raises(SystemExit, match=message):
@@ -491,6 +512,17 @@ def test_build_command_from_a_pack_and_its_refusals(built, cache, tmp_path, caps
     np.savez(tmp_path / "other.npz", points=np.zeros(3))
     with pytest.raises(SystemExit, match=r"other.npz: not a data pack, missing \['actor_hip"):
         main(["build", "--pack", str(tmp_path / "other.npz"), "--out", str(tmp_path / "x")])
+
+
+def test_a_pack_from_before_the_ankle_check_counts_as_keeping_broken_feet(built, cache,
+                                                                           tmp_path):
+    from training.data.pack import load_pack, write_pack
+    _tiny_pack(built, cache, tmp_path / "pack.npz")
+    with np.load(tmp_path / "pack.npz", allow_pickle=False) as data:
+        arrays = {key: data[key] for key in data.files if key != "keep_broken_ankles"}
+    write_pack(tmp_path / "old.npz", arrays)
+    assert load_pack(tmp_path / "old.npz").keep_broken_ankles
+    assert not load_pack(tmp_path / "pack.npz").keep_broken_ankles
 
 
 def test_a_pack_holds_one_mesh_topology(built, cache):

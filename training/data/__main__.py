@@ -5,9 +5,11 @@
                                   [--seed S] [--points P] [--skin-samples N] [--skin-points Q]
                                   [--clip-stride K] [--clip-frames C] [--category-power P]
                                   [--seated-fraction F] [--crossed-fraction F]
+                                  [--include-broken] [--keep-broken-ankles]
                                   [--body-cache DIR] [--only KIND [KIND ...]]
     python -m training.data pack --cmu ../shared/data/cmu --out data/pack.npz [--bodies N]
-                                 [--include-broken] [--body-cache DIR]
+                                 [--include-broken] [--keep-broken-ankles]
+                                 [--body-cache DIR]
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
                                    [--points P] [--seed S]
@@ -65,7 +67,10 @@ def _build(args):
         if args.only is not None and "test" in args.only:
             sys.exit(f"--only test: {args.pack} holds no test split; build it with --cmu")
         args.only = args.only or tuple(kind for kind in DATASETS if kind != "test")
+        if args.keep_broken_ankles and not pack.keep_broken_ankles:
+            sys.exit(f"--keep-broken-ankles: {args.pack} was packed without the broken feet")
         args.include_broken = pack.include_broken
+        args.keep_broken_ankles = pack.keep_broken_ankles
         motions, actor_hip_height, bodies = pack.motions, pack.actor_hip_height, pack.bodies
     args.only = args.only or DATASETS
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
@@ -74,9 +79,11 @@ def _build(args):
                          clip_frames=args.clip_frames, category_power=args.category_power,
                          seated_fraction=args.seated_fraction,
                          crossed_fraction=args.crossed_fraction,
-                         include_broken=args.include_broken)
+                         include_broken=args.include_broken,
+                         keep_broken_ankles=args.keep_broken_ankles)
     if args.pack is None:
-        motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken)
+        motions, actor_hip_height = cmu_motions(args.cmu, include_broken=args.include_broken,
+                                                keep_broken_ankles=args.keep_broken_ankles)
     else:
         try:
             bodies = first_bodies(bodies, config)
@@ -109,7 +116,8 @@ def _build(args):
 
 def _pack(args):
     from .pack import make_pack
-    arrays = make_pack(args.cmu, args.out, args.bodies, args.include_broken, args.body_cache)
+    arrays = make_pack(args.cmu, args.out, args.bodies, args.include_broken, args.body_cache,
+                       keep_broken_ankles=args.keep_broken_ankles)
     splits = arrays["motion_splits"].tolist()
     print(f"wrote {args.out}: {splits.count('train')} train and {splits.count('val')} val "
           f"trials ({len(arrays['motion_root'])} frames), "
@@ -178,6 +186,9 @@ def main(argv=None):
     build_parser.add_argument("--include-broken", action="store_true",
                               help="keep the broken captures (cmu.BROKEN_TRIALS), as the "
                                    "shipped weights' data did")
+    build_parser.add_argument("--keep-broken-ankles", action="store_true",
+                              help="keep the frames whose feet turn further than an ankle can "
+                                   "(cmu.broken_ankle_frames), as the shipped weights' data did")
     build_parser.add_argument("--only", nargs="+", choices=DATASETS, default=None,
                               metavar="KIND", help=f"build only these of {DATASETS} "
                               "(e.g. smrm with --clip-frames 60 into another folder)")
@@ -190,6 +201,8 @@ def main(argv=None):
                              f"that many uses (default {_DEFAULTS.bodies})")
     pack_parser.add_argument("--include-broken", action="store_true",
                              help="keep the broken captures (cmu.BROKEN_TRIALS)")
+    pack_parser.add_argument("--keep-broken-ankles", action="store_true",
+                             help="keep the frames with broken feet (cmu.broken_ankle_frames)")
     preview_parser = commands.add_parser("preview", help="draw bodies walking into a png")
     preview_parser.add_argument("--out", required=True, help="output .png")
     preview_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")

@@ -65,7 +65,8 @@ from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
                      sampled_body_seeds)
-from .cmu import BROKEN_TRIALS, cmu_tpose_joints, list_trials, load_motion
+from .cmu import (BROKEN_TRIALS, broken_ankle_frames, clean_segments, cmu_tpose_joints,
+                  list_trials, load_motion)
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 # Training subjects held out for validation (basketball and running; about 3,000 frames).
@@ -77,7 +78,7 @@ CHUNK = 256
 # Config fields added after builds were made, with the value that builds the data as before.
 # (Builds before the broken captures were found had them: include_broken True.)
 ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0, "crossed_fraction": 0.0,
-                       "include_broken": True}
+                       "include_broken": True, "keep_broken_ankles": True}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,6 +113,10 @@ class BuildConfig:
     # Keep the broken captures (``cmu.BROKEN_TRIALS``: bodies sink through the floor), as the
     # data of the shipped weights did; ``build`` refuses motions that contradict it.
     include_broken: bool = False
+    # Keep the frames whose feet turn further from the shin than an ankle can
+    # (``cmu.broken_ankle_frames``), as the data of the shipped weights did; otherwise the
+    # motions are cut around them (``cmu.clean_segments``) and ``build`` refuses any left.
+    keep_broken_ankles: bool = False
 
     def __post_init__(self):
         if not np.isfinite(self.category_power):
@@ -197,9 +202,11 @@ class Frames:
                               ).astype(np.int64)
 
 
-def cmu_motions(cmu_dir, show_progress=True, include_broken=False):
+def cmu_motions(cmu_dir, show_progress=True, include_broken=False, keep_broken_ankles=False):
     """Load every CMU trial at 30 fps (the broken ones, ``cmu.BROKEN_TRIALS``, only if
-    ``include_broken``), split for training, validation and test.
+    ``include_broken``), split for training, validation and test; unless
+    ``keep_broken_ankles``, each cut into the runs of frames between its broken feet
+    (``cmu.clean_segments``: no test trial has any).
 
     Returns:
         motions: {'train', 'val', 'test'}: lists of ``cmu.Motion``; 'test' is DESIGN.md's test
@@ -213,7 +220,8 @@ def cmu_motions(cmu_dir, show_progress=True, include_broken=False):
     for trial in tqdm(trials, desc="loading CMU", unit="trial", disable=not show_progress):
         split = ("test" if trial.split == "test" else
                  "val" if trial.subject in VALIDATION_SUBJECTS else "train")
-        motions[split].append(load_motion(trial.path, fps=FPS))
+        motion = load_motion(trial.path, fps=FPS)
+        motions[split].extend([motion] if keep_broken_ankles else clean_segments(motion))
     return motions, float(cmu_tpose_joints(trials[0].path)[0, 1])
 
 
@@ -545,14 +553,25 @@ def save_npz(path, arrays):
 DATASETS = ("skr", "skin", "smrm", "skr_tpose", "test", "sequences")
 
 
-def check_broken(motions, include_broken):
+def check_broken(motions, include_broken, keep_broken_ankles=False):
     """ValueError if ``motions`` ({split: [Motion]}) hold a broken capture
-    (``cmu.BROKEN_TRIALS``) and ``include_broken`` is False."""
-    broken = sorted(m.name for split in motions.values() for m in split
-                    if m.name in BROKEN_TRIALS)
+    (``cmu.BROKEN_TRIALS``) and ``include_broken`` is False, or a frame with a broken foot
+    (``cmu.broken_ankle_frames``) and ``keep_broken_ankles`` is False."""
+    broken = sorted(m.name for split in motions.values() for m in split      # segments too
+                    if m.name.split("@")[0] in BROKEN_TRIALS)
     if broken and not include_broken:
         raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS); "
                          "leave them out or build with include_broken=True")
+    if keep_broken_ankles:
+        return
+    feet = {m.name: int(broken_ankle_frames(m.rotations).sum())
+            for split in motions.values() for m in split}
+    feet = {name: count for name, count in feet.items() if count}
+    if feet:
+        raise ValueError(f"the motions hold frames whose feet turn further than an ankle can "
+                         f"(cmu.broken_ankle_frames; frames per motion: {feet}); cut them out "
+                         "(cmu.clean_segments, as cmu_motions does) or build with "
+                         "keep_broken_ankles=True")
 
 
 def sampled_bodies(config, cache_dir=None):
@@ -603,7 +622,7 @@ def build(motions, actor_hip_height, out_dir, config=BuildConfig(), cache_dir=No
     old = json.loads(previous.read_text()) if partial else {}
     # A manifest from before a config field existed was built as ADDED_CONFIG_FIELDS says.
     recorded = {**ADDED_CONFIG_FIELDS, **old["config"]} if "config" in old else {}
-    check_broken(motions, config.include_broken)
+    check_broken(motions, config.include_broken, config.keep_broken_ankles)
     wanted = dataclasses.asdict(config)
     if partial and recorded != wanted:
         differing = sorted(k for k, v in wanted.items() if recorded.get(k) != v)

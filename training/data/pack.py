@@ -14,6 +14,8 @@ Contents (``np.savez_compressed``, loaded without pickle):
         motion_categories, motion_splits (M,) str ('train' or 'val'); motion_source_fps (M,)
         float64 the capture rates they were resampled from;
     actor_hip_height () float64 metres; include_broken () bool (``cmu.BROKEN_TRIALS`` kept);
+    keep_broken_ankles () bool (frames with broken feet kept, ``cmu.broken_ankle_frames``;
+        a pack without the key, from before it existed, kept them);
     body_names, body_splits (B,) str; phenotype_labels (K,) str, body_phenotypes (B, K)
         float64; body_joints (B, J, 3) float32 T-pose joints, exact;
     body_vertices (B, V, 3) float32 T-pose vertices;
@@ -47,7 +49,7 @@ KEYS = ("motion_rotations", "motion_root", "motion_starts", "motion_names", "mot
         "body_vertices", "faces", "skin_weights")
 
 
-def pack_arrays(motions, actor_hip_height, bodies, include_broken):
+def pack_arrays(motions, actor_hip_height, bodies, include_broken, keep_broken_ankles=False):
     """The pack's arrays (module docstring) of ``motions`` {'train', 'val': [Motion]} and
     ``bodies`` {'train', 'val': [Body]}. ValueError if the bodies differ in faces or skinning
     weights."""
@@ -60,7 +62,7 @@ def pack_arrays(motions, actor_hip_height, bodies, include_broken):
     slow = sorted(m.name for _, m in trials if m.fps != FPS)
     if slow:
         raise ValueError(f"motions {slow} are not at {FPS} fps")
-    check_broken({split: motions[split] for split in SPLITS}, include_broken)
+    check_broken({split: motions[split] for split in SPLITS}, include_broken, keep_broken_ankles)
     check_one_mesh(every)
     first = every[0]
     labels = sorted(first.phenotype)
@@ -74,6 +76,7 @@ def pack_arrays(motions, actor_hip_height, bodies, include_broken):
         "motion_splits": np.array([split for split, _ in trials]),
         "actor_hip_height": np.float64(actor_hip_height),
         "include_broken": np.bool_(include_broken),
+        "keep_broken_ankles": np.bool_(keep_broken_ankles),
         "body_names": np.array([body.name for body in every]),
         "body_splits": np.array([split for split in SPLITS for _ in bodies[split]]),
         "phenotype_labels": np.array(labels),
@@ -91,12 +94,13 @@ def write_pack(path, arrays):
 
 
 def make_pack(cmu_dir, path, bodies=BuildConfig.bodies, include_broken=False, cache_dir=None,
-              show_progress=True):
+              show_progress=True, keep_broken_ankles=False):
     """Load the CMU trials and the first ``bodies`` training bodies (and the validation bodies
     a build of that many uses) and write them to ``path``. Returns the arrays."""
-    motions, actor_hip_height = cmu_motions(cmu_dir, show_progress, include_broken)
+    motions, actor_hip_height = cmu_motions(cmu_dir, show_progress, include_broken,
+                                            keep_broken_ankles)
     chosen = sampled_bodies(BuildConfig(bodies=bodies), cache_dir)
-    arrays = pack_arrays(motions, actor_hip_height, chosen, include_broken)
+    arrays = pack_arrays(motions, actor_hip_height, chosen, include_broken, keep_broken_ankles)
     write_pack(path, arrays)
     return arrays
 
@@ -109,6 +113,7 @@ class Pack:
     bodies: dict             # {'train', 'val': [Body]}
     include_broken: bool
     sha256: str              # of the file: weights trained on it record it
+    keep_broken_ankles: bool = True
 
 
 def load_pack(path):
@@ -145,4 +150,5 @@ def load_pack(path):
                                   vertices=arrays["body_vertices"][i], faces=arrays["faces"],
                                   joints=arrays["body_joints"][i], weights=arrays["skin_weights"]))
     return Pack(motions, float(arrays["actor_hip_height"]), bodies,
-                bool(arrays["include_broken"]), digest)
+                bool(arrays["include_broken"]), digest,
+                bool(arrays.get("keep_broken_ankles", True)))
