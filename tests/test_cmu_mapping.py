@@ -285,6 +285,16 @@ def test_broken_feet_are_in_training_dances_only_and_the_loaded_motions_are_cut_
 
 
 @needs_cmu
+def test_the_dance_set_keeps_each_trials_longest_run_without_broken_feet():
+    from training.data.datasets import dance_sequences
+    builds = {trial.name: build for trial, build in dance_sequences(CMU_DIR)}
+    sequence = builds["05_06"]()              # 179 of frames 31-219 past the limit
+    assert str(sequence["name"]) == "05_06@0" and len(sequence["source_points"]) == 31
+    assert not broken_ankle_frames(sequence["rotations"]).any()
+    assert len(builds["05_02"]()["source_points"]) == 279           # a clean trial, whole
+
+
+@needs_cmu
 def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seeds():
     """Each validation trial keeps its place k in the draw over every trial (its bodies and
     seed: the benchmark figures stored since depend on it); place 9 was the broken 09_10's."""

@@ -78,9 +78,9 @@ BROKEN_FLOOR_HEIGHT = -0.3    # metres: ``floor_height`` below this marks a brok
 # turned a median 24 and 35 degrees from the T-pose's, left and right); in salsa_01 (frames
 # 356-448) it folds back up along the shin (medians 163 and 158 degrees). Such frames put
 # impossible feet into training clouds and truth skeletons, so builds cut them out
-# (``clean_segments``); the limit sits in the gap of the distribution. The benchmarks'
-# validation and dance sequences keep them (their saved results stay comparable): 4 of the
-# 16 dance trials hold broken feet, in 305 of the 7,561 frames used.
+# (``clean_segments``); the limit sits in the gap of the distribution. So does the benchmark
+# of training dances (``datasets.dance_sequences``: 4 of its 16 trials had broken feet, in
+# 305 of the 7,561 frames it used); validation has none.
 ANKLE_LIMIT_DEGREES = 120.0
 _ANKLES = (JOINT_INDEX["left_ankle"], JOINT_INDEX["right_ankle"])
 MIN_SEGMENT_FRAMES = 30       # shorter clean runs between broken frames are dropped too
