@@ -29,6 +29,7 @@ import sys
 import tempfile
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -42,7 +43,7 @@ from minretarget.skr import regress_joints
 from minretarget.smrm import retarget_step
 from minretarget.weights import load_weights
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import weights_record  # noqa: E402
 
 DEFAULT_SETTING = (2048, 13718)

@@ -216,15 +216,15 @@ def test_broken_ankle_frames_are_those_turned_past_the_limit_on_either_side():
 
 
 def test_clean_segments_cut_the_broken_frames_and_the_short_runs_between_them():
-    degrees = np.zeros(120)
-    degrees[40:45] = degrees[100] = 170          # clean runs 0-39, 45-99 and 101-119
+    degrees = np.zeros(160)
+    degrees[40:45] = degrees[60] = degrees[100] = 170   # clean runs 0-39, 45-59, 61-99, 101-159
     rotations = _turned_ankles(degrees, "right_ankle")
-    root = np.arange(120 * 3, dtype=np.float32).reshape(120, 3)
+    root = np.arange(160 * 3, dtype=np.float32).reshape(160, 3)
     motion = Motion("05_06", rotations, root, 30, "dance", 120.0)
     segments = clean_segments(motion)
-    assert [m.name for m in segments] == ["05_06@0", "05_06@45"]    # 19 frames < the minimum
-    assert 101 + MIN_SEGMENT_FRAMES > 120
-    for segment, (start, end) in zip(segments, ((0, 40), (45, 100))):
+    assert 60 - 45 < MIN_SEGMENT_FRAMES <= 100 - 61                # 45-59 is too short
+    assert [m.name for m in segments] == ["05_06@0", "05_06@61", "05_06@101"]
+    for segment, (start, end) in zip(segments, ((0, 40), (61, 100), (101, 160))):
         np.testing.assert_array_equal(segment.rotations, rotations[start:end])
         np.testing.assert_array_equal(segment.root, root[start:end])
         assert (segment.fps, segment.category, segment.source_fps) == (30, "dance", 120.0)

@@ -516,13 +516,23 @@ def test_build_command_from_a_pack_and_its_refusals(built, cache, tmp_path, caps
 
 def test_a_pack_from_before_the_ankle_check_counts_as_keeping_broken_feet(built, cache,
                                                                            tmp_path):
-    from training.data.pack import load_pack, write_pack
+    from training.data.pack import load_pack, without_broken_ankles, write_pack
     _tiny_pack(built, cache, tmp_path / "pack.npz")
     with np.load(tmp_path / "pack.npz", allow_pickle=False) as data:
         arrays = {key: data[key] for key in data.files if key != "keep_broken_ankles"}
     write_pack(tmp_path / "old.npz", arrays)
     assert load_pack(tmp_path / "old.npz").keep_broken_ankles
     assert not load_pack(tmp_path / "pack.npz").keep_broken_ankles
+    # such a pack is cut when used, as a build from the CMU folder cuts: train_a (frames 0-49)
+    # broken at frame 45 keeps its frames 0-44; 46-49 are too few to keep
+    arrays["motion_rotations"][45, JOINT_INDEX["right_ankle"]] = [np.cos(1.4), 0, np.sin(1.4), 0]
+    write_pack(tmp_path / "broken.npz", arrays)
+    cut = without_broken_ankles(load_pack(tmp_path / "broken.npz"))
+    assert not cut.keep_broken_ankles
+    assert [(m.name, len(m.rotations)) for m in cut.motions["train"]] == [
+        ("train_a@0", 45), ("train_b", 40)]
+    np.testing.assert_array_equal(cut.motions["train"][0].rotations,
+                                  arrays["motion_rotations"][:45])
 
 
 def test_a_pack_holds_one_mesh_topology(built, cache):

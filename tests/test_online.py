@@ -148,8 +148,9 @@ def test_weights_trained_on_a_pack_record_it(synthetic, tmp_path):
     recorded = provenance(load_recipe("cpu"), tmp_path, pack=load_pack(tmp_path / "pack.npz"))
     digest = hashlib.sha256((tmp_path / "pack.npz").read_bytes()).hexdigest()
     assert recorded["data"]["skr_online_pack"] == {
-        "sha256": digest, "trials": {"train": 2, "val": 1}, "bodies": {"train": 3, "val": 1},
-        "include_broken": False, "config": dataclasses.asdict(BuildConfig())}
+        "sha256": digest, "motions": {"train": 2, "val": 1}, "bodies": {"train": 3, "val": 1},
+        "include_broken": False, "keep_broken_ankles": False,
+        "config": dataclasses.asdict(BuildConfig())}
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (a GPU session)")

@@ -36,13 +36,14 @@ from tqdm import tqdm
 
 from minretarget.atomic import atomic_write
 from minretarget.conventions import NUM_JOINTS
+from minretarget.metrics import ACCELERATION_FRAMES
 from minretarget.refine import refine_joints
 from minretarget.skr import regress_joints
 from minretarget.smoothing import Smoothing, smooth_joints
 from minretarget.weights import load_weights
 from training.data.datasets import BuildConfig
 from training.data.online import OnlineFrames
-from training.data.pack import load_pack
+from training.data.pack import load_pack, without_broken_ankles
 from training.export import (export_weights, import_weights, refine_runtime_weights,
                              skr_runtime_weights)
 from training.kinematics import forward_kinematics
@@ -447,9 +448,10 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
     starts = train["starts"].cpu()
     lengths = starts[1:] - starts[:-1]
     usable = torch.nonzero(lengths >= stage_recipe.window)[:, 0]
-    if stage_recipe.window < 3 or not len(usable):
-        raise ValueError(f"denoise.window {stage_recipe.window}: must be at least 3 frames "
-                         "(acceleration) and no longer than some training trial")
+    if stage_recipe.window < ACCELERATION_FRAMES or not len(usable):
+        raise ValueError(f"denoise.window {stage_recipe.window}: must be at least "
+                         f"{ACCELERATION_FRAMES} frames (acceleration) and no longer than some "
+                         "training trial")
     model = (model or SkeletonDenoiser(recipe.model)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
     stage = Stage("denoise", run_dir, {"denoise": model}, {"denoise": optimizer},
@@ -481,7 +483,7 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
         totals, frames = torch.zeros(6), 0
         bounds = val["starts"].cpu().tolist()
         for a, b in zip(bounds[:-1], bounds[1:]):
-            if b - a < 3:
+            if b - a < ACCELERATION_FRAMES:
                 continue
             skeleton, joints = val["skeleton"][a:b][None], val["joints"][a:b][None]
             denoised = model.mirror_averaged(skeleton)[0]      # as the runtime runs it
@@ -654,9 +656,10 @@ def provenance(recipe, data_dir, init=None, pack=None):
     if pack is not None:
         out["data"]["skr_online_pack"] = {
             "sha256": pack.sha256,
-            "trials": {split: len(pack.motions[split]) for split in ("train", "val")},
+            "motions": {split: len(pack.motions[split]) for split in ("train", "val")},
             "bodies": {split: len(pack.bodies[split]) for split in ("train", "val")},
             "include_broken": pack.include_broken,
+            "keep_broken_ankles": pack.keep_broken_ankles,
             "config": dataclasses.asdict(ONLINE_FRAMES)}
     if init is not None:
         out["init"] = init.metadata
@@ -705,7 +708,7 @@ def main(argv=None):
     pack = None
     if args.pack is not None:
         try:
-            pack = load_pack(args.pack)
+            pack = without_broken_ankles(load_pack(args.pack))   # as builds cut them
         except ValueError as error:
             parser.error(f"--pack: {error}")
     if args.threads:

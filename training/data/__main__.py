@@ -57,20 +57,21 @@ def _build(args):
     start = time.perf_counter()
     bodies = None
     if args.pack is not None:         # motions and bodies from a pack (training.data.pack)
-        from .pack import load_pack
+        from .pack import load_pack, without_broken_ankles
         try:
             pack = load_pack(args.pack)
         except ValueError as error:
             sys.exit(str(error))
         if args.include_broken and not pack.include_broken:
             sys.exit(f"--include-broken: {args.pack} was packed without the broken captures")
+        if args.keep_broken_ankles and not pack.keep_broken_ankles:
+            sys.exit(f"--keep-broken-ankles: {args.pack} was packed without the broken feet")
+        if not args.keep_broken_ankles:     # an older pack holds them: cut as --cmu would
+            pack = without_broken_ankles(pack)
         if args.only is not None and "test" in args.only:
             sys.exit(f"--only test: {args.pack} holds no test split; build it with --cmu")
         args.only = args.only or tuple(kind for kind in DATASETS if kind != "test")
-        if args.keep_broken_ankles and not pack.keep_broken_ankles:
-            sys.exit(f"--keep-broken-ankles: {args.pack} was packed without the broken feet")
         args.include_broken = pack.include_broken
-        args.keep_broken_ankles = pack.keep_broken_ankles
         motions, actor_hip_height, bodies = pack.motions, pack.actor_hip_height, pack.bodies
     args.only = args.only or DATASETS
     config = BuildConfig(seed=args.seed, bodies=args.bodies, frames=args.frames,
@@ -95,7 +96,8 @@ def _build(args):
     print(f"\nbuilt {args.out} in {time.perf_counter() - start:.0f} s "
           f"(datasets {summary['seconds']:.0f} s), {_size(summary['total_bytes'])} in all")
     print(f"  motions: {counts['trials_train']} train / {counts['trials_val']} val / "
-          f"{counts['trials_test']} test trials; {counts['motion_frames_train']} train and "
+          f"{counts['trials_test']} test motions (trials, or runs of them without broken "
+          f"feet); {counts['motion_frames_train']} train and "
           f"{counts['motion_frames_val']} val frames at 30 fps; actor hip height "
           f"{actor_hip_height:.3f} m")
     print(f"  bodies: {counts['bodies_train']} train, {counts['bodies_val']} val"
@@ -120,7 +122,7 @@ def _pack(args):
                        keep_broken_ankles=args.keep_broken_ankles)
     splits = arrays["motion_splits"].tolist()
     print(f"wrote {args.out}: {splits.count('train')} train and {splits.count('val')} val "
-          f"trials ({len(arrays['motion_root'])} frames), "
+          f"motions ({len(arrays['motion_root'])} frames), "
           f"{len(arrays['body_names'])} bodies, {_size(Path(args.out).stat().st_size)}")
 
 

@@ -68,19 +68,13 @@ LEAD_IN_FRAMES = 8       # conversion artefacts at the start of every file (modu
 BROKEN_TRIALS = frozenset({"01_14", "07_12", "09_10"})
 BROKEN_FLOOR_HEIGHT = -0.3    # metres: ``floor_height`` below this marks a broken capture
 
-# Broken feet, frame by frame: in 13 training trials (nine of subject 05's dances, salsa 01,
-# 02, 10 and 15) a foot turns further from its shin than an ankle can. Over the 72,820 frames
-# of every trial at 30 fps, the larger ankle turn (the local rotation's angle) is within 60
-# degrees in 70,905, 60-100 in 1,298, 100-120 in 15, 120-150 in 2 and beyond 150 in 600. Of
-# the 602 past 120, 468 are 10.5 % of the dance category's frames and 134 are salsa's; none
-# is in the test split. Two kinds: in 05_06 (most of its 220 frames) the foot is rolled about
-# 170 degrees about its own length, sole up, while it points a plausible way (its direction
-# turned a median 24 and 35 degrees from the T-pose's, left and right); in salsa_01 (frames
-# 356-448) it folds back up along the shin (medians 163 and 158 degrees). Such frames put
-# impossible feet into training clouds and truth skeletons, so builds cut them out
-# (``clean_segments``); the limit sits in the gap of the distribution. So does the benchmark
-# of training dances (``datasets.dance_sequences``: 4 of its 16 trials had broken feet, in
-# 305 of the 7,561 frames it used); validation has none.
+# Broken feet, frame by frame: in 602 frames of 13 training trials (subject 05's dances and
+# four salsa trials; none in the test split) a foot turns further from its shin than an ankle
+# can, rolled sole-up or folded onto the shin. They put impossible feet into training clouds
+# and truth skeletons, so builds cut them out (``clean_segments``), and so does the benchmark
+# of training dances (``datasets.dance_sequences``). Of every trial's 72,820 frames, the
+# larger ankle turn is past 150 degrees in 600, 100-150 in 17 and within 100 in the rest: the
+# limit sits in the gap (docs/training_notes.md, "Broken feet in the training dances").
 ANKLE_LIMIT_DEGREES = 120.0
 _ANKLES = (JOINT_INDEX["left_ankle"], JOINT_INDEX["right_ankle"])
 MIN_SEGMENT_FRAMES = 30       # shorter clean runs between broken frames are dropped too
@@ -103,7 +97,8 @@ class Motion:
     """One CMU trial on the canonical skeleton.
 
     Attributes:
-        name: trial name, e.g. "08_01" (cgspeed) or "salsa_01" (aclstm).
+        name: trial name, e.g. "08_01" (cgspeed) or "salsa_01" (aclstm); a run of a trial
+            cut around broken feet (``clean_segments``) is "<trial>@<first frame>".
         rotations: (T, 22, 4) float32 local joint quaternions (w, x, y, z), w >= 0.
         root: (T, 3) float32 world position of the pelvis (CMU hip joint), metres, +Y up,
             canonical axes; the capture floor is near y = 0.
@@ -137,6 +132,12 @@ def broken_ankle_frames(rotations):
     shin."""
     w = np.clip(np.abs(np.asarray(rotations)[:, _ANKLES, 0]), 0.0, 1.0)         # (T, 2)
     return (np.degrees(2.0 * np.arccos(w)) > ANKLE_LIMIT_DEGREES).any(axis=1)
+
+
+def trial_of(name):
+    """The trial a motion's ``name`` comes from: "salsa_01@449" -> "salsa_01" (and "08_01"
+    -> "08_01")."""
+    return name.split("@")[0]
 
 
 def clean_segments(motion):

@@ -66,7 +66,7 @@ from minretarget.kinematics import forward_kinematics, quaternion_multiply
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
                      sampled_body_seeds)
 from .cmu import (BROKEN_TRIALS, MIN_SEGMENT_FRAMES, broken_ankle_frames, clean_segments,
-                  cmu_tpose_joints, list_trials, load_motion)
+                  cmu_tpose_joints, list_trials, load_motion, trial_of)
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 # Training subjects held out for validation (basketball and running; about 3,000 frames).
@@ -76,7 +76,8 @@ CHUNK = 256
 
 
 # Config fields added after builds were made, with the value that builds the data as before.
-# (Builds before the broken captures were found had them: include_broken True.)
+# (Builds before the broken captures and the broken feet were found had them: include_broken
+# and keep_broken_ankles True.)
 ADDED_CONFIG_FIELDS = {"category_power": 1.0, "seated_fraction": 0.0, "crossed_fraction": 0.0,
                        "include_broken": True, "keep_broken_ankles": True}
 
@@ -566,8 +567,8 @@ def check_broken(motions, include_broken, keep_broken_ankles=False):
     """ValueError if ``motions`` ({split: [Motion]}) hold a broken capture
     (``cmu.BROKEN_TRIALS``) and ``include_broken`` is False, or a frame with a broken foot
     (``cmu.broken_ankle_frames``) and ``keep_broken_ankles`` is False."""
-    broken = sorted(m.name for split in motions.values() for m in split      # segments too
-                    if m.name.split("@")[0] in BROKEN_TRIALS)
+    broken = sorted(m.name for split in motions.values() for m in split
+                    if trial_of(m.name) in BROKEN_TRIALS)
     if broken and not include_broken:
         raise ValueError(f"the motions hold broken captures {broken} (cmu.BROKEN_TRIALS); "
                          "leave them out or build with include_broken=True")

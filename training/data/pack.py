@@ -9,8 +9,9 @@ datasets (bar the test split) without them:
 
 Contents (``np.savez_compressed``, loaded without pickle):
     motion_rotations (N, J, 4) float32, motion_root (N, 3) float32: every frame of the
-        training and validation trials at 30 fps, trial after trial, exactly as loaded;
-    motion_starts (M + 1,) int64 each trial's first frame, then N; motion_names,
+        training and validation motions at 30 fps (the trials' runs without broken feet,
+        ``cmu.clean_segments``, unless packed with them), one after another, exactly as loaded;
+    motion_starts (M + 1,) int64 each motion's first frame, then N; motion_names,
         motion_categories, motion_splits (M,) str ('train' or 'val'); motion_source_fps (M,)
         float64 the capture rates they were resampled from;
     actor_hip_height () float64 metres; include_broken () bool (``cmu.BROKEN_TRIALS`` kept);
@@ -39,7 +40,7 @@ from minretarget.atomic import atomic_write
 from minretarget.conventions import FPS
 
 from .bodies import Body, check_one_mesh
-from .cmu import Motion
+from .cmu import Motion, clean_segments
 from .datasets import BuildConfig, check_broken, cmu_motions, sampled_bodies
 
 SPLITS = ("train", "val")
@@ -114,6 +115,17 @@ class Pack:
     include_broken: bool
     sha256: str              # of the file: weights trained on it record it
     keep_broken_ankles: bool = True
+
+
+def without_broken_ankles(pack):
+    """``pack`` with its motions cut around broken feet (``cmu.clean_segments``), as a build
+    from the CMU folder cuts them: a pack made before the cut existed, or with
+    --keep-broken-ankles, holds them."""
+    if not pack.keep_broken_ankles:
+        return pack
+    motions = {split: [run for motion in pack.motions[split] for run in clean_segments(motion)]
+               for split in pack.motions}
+    return dataclasses.replace(pack, motions=motions, keep_broken_ankles=False)
 
 
 def load_pack(path):
