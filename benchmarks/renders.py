@@ -21,7 +21,9 @@ A markdown table is printed. Numbers (metres, frames at 30 fps):
                   retargeted bone's direction and the same ground-truth bone's, degrees; the
                   mean of that over frames and its maximum (with the bone, named by its
                   child joint: "right_wrist" is the forearm). It counts a body turned as a
-                  whole as well as a twisted limb, so it is an upper bound.
+                  whole as well as a twisted limb, so it is an upper bound. Also the frames
+                  where that largest angle passes TWISTED_DEG, and the longest run of them
+                  (a misreading held for many frames, or a single-frame spike?).
     knee backward fraction of frames where a knee bends backwards by 10 to 150 degrees
                   (signed angle between thigh and shank about the pelvis's left axis, positive
                   for a normal bend; beyond 150 degrees either way, a full squat, the sign is
@@ -53,6 +55,7 @@ from minretarget.weights import load_weights  # noqa: E402
 SEQUENCES = (("08_01", "walk"), ("08_02", "walk"), ("indian_06", "dance"),
              ("indian_04", "dance"))
 KNEE_BACKWARD_DEG = (10.0, 150.0)  # degrees bent the wrong way that count as backward
+TWISTED_DEG = 60.0                 # a bone this far from the truth's counts as twisted
 
 
 def bone_angles(pred, truth):
@@ -62,6 +65,15 @@ def bone_angles(pred, truth):
     a, b = pred[:, child] - pred[:, parent], truth[:, child] - truth[:, parent]
     cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1) + 1e-12)
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def twisted_frames(angles, limit=TWISTED_DEG):
+    """(T, J - 1) bone angles, degrees -> (frames whose largest angle passes ``limit``, the
+    longest run of such frames in a row)."""
+    over = np.asarray(angles).max(axis=1) > limit
+    # run lengths: the distance between the edges where ``over`` turns on and off
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], over.astype(np.int8), [0]])))
+    return int(over.sum()), int((edges[1::2] - edges[::2]).max(initial=0))
 
 
 def knee_bend(joints):
@@ -120,9 +132,10 @@ def shrink(png, colors=96):
 
 def table(results):
     lines = ["| sequence | target | frames | jitter res / gt (m/frame^2) | foot sliding res / gt "
-             "(m/s) | res on gt contacts (m/s) | contact res / gt | bone angle mean-max / max (deg) | knee backward "
+             "(m/s) | res on gt contacts (m/s) | contact res / gt | bone angle mean-max / max (deg) "
+             f"| frames > {TWISTED_DEG:g} deg (longest run) | knee backward "
              "res / gt | lowest point res / gt (m, median) | MPJPE |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         res, gt = r["result"], r["truth"]
         lines.append(
@@ -133,6 +146,7 @@ def table(results):
             f"{res['contact_fraction']:.2f} / {gt['contact_fraction']:.2f} | "
             f"{res['bone_angle_max_deg_mean']:.1f} / {res['bone_angle_max_deg']:.1f} "
             f"({res['bone_angle_max_bone']}) | "
+            f"{res['bone_angle_frames_over']} ({res['bone_angle_longest_run_over']}) | "
             f"{res['knee_backward_fraction']:.2f} / {gt['knee_backward_fraction']:.2f} | "
             f"{res['lowest_point_median']:.3f} / {gt['lowest_point_median']:.3f} | "
             f"{r['accuracy']['MPJPE']:.3f} |")
@@ -164,6 +178,8 @@ def main(argv=None):
                        "bone_angle_max_bone": JOINT_NAMES[worst[1] + 1],
                        "bone_angle_max_frame": int(worst[0]),
                        "bone_angle_mean_deg": float(angles.mean())})
+        result["bone_angle_frames_over"], result["bone_angle_longest_run_over"] = \
+            twisted_frames(angles)
         png = out / f"{name}_{body}.png"
         with tempfile.TemporaryDirectory() as scratch:
             result_npz = Path(scratch) / "result.npz"
@@ -188,7 +204,8 @@ def main(argv=None):
     print(f"\n{seconds:.0f} s")
     (out / "renders.json").write_text(json.dumps(
         {"per_sequence": results, "contact_height": CONTACT_HEIGHT,
-         "knee_backward_deg": KNEE_BACKWARD_DEG, **weights_record(args.weights, weights),
+         "knee_backward_deg": KNEE_BACKWARD_DEG, "twisted_deg": TWISTED_DEG,
+         **weights_record(args.weights, weights),
          "seconds": round(seconds, 1)}, indent=2))
 
 
