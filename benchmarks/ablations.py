@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from accuracy import load_sequence, select_sequences, stream
+from accuracy import load_sequence, select_sequences, stream, write_text
 from minretarget.metrics import METRIC_NAMES, evaluate
 from minretarget.retargeter import Retargeter
 from minretarget.smoothing import Smoothing
@@ -137,9 +137,9 @@ def main(argv=None):
                        for name, rows in tables.items())
     print(text + f"\n\n{seconds:.0f} s")
     if args.markdown:
-        Path(args.markdown).write_text(text + "\n")
+        write_text(args.markdown, text + "\n")
     if args.json:
-        Path(args.json).write_text(json.dumps(
+        write_text(args.json, json.dumps(
             {"tables": tables, "frames": count, "sequences": len(sequence_paths),
              "quick": args.quick, "seconds": round(seconds, 1),
              "recipes": {v: w.metadata.get("recipe") for v, w in variants.items()}}, indent=2))

@@ -44,8 +44,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import (CONTACT_HEIGHT, load_sequence, sequence_metrics,  # noqa: E402
-                      weights_record)
+                      weights_record, write_text)
 
+from minretarget.atomic import atomic_write  # noqa: E402
 from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, PARENTS, UP_AXIS  # noqa: E402
 from minretarget.metrics import foot_contacts, foot_sliding, foot_speeds, jitter  # noqa: E402
 from minretarget.render import render  # noqa: E402
@@ -127,7 +128,8 @@ def shrink(png, colors=96):
     from PIL import Image
     with Image.open(png) as image:
         palette = image.convert("RGB").quantize(colors=colors)
-    palette.save(png, optimize=True)
+    with atomic_write(png) as file:
+        palette.save(file, format="PNG", optimize=True)
 
 
 def table(results):
@@ -202,7 +204,7 @@ def main(argv=None):
     seconds = time.perf_counter() - started
     print(table(results))
     print(f"\n{seconds:.0f} s")
-    (out / "renders.json").write_text(json.dumps(
+    write_text(out / "renders.json", json.dumps(
         {"per_sequence": results, "contact_height": CONTACT_HEIGHT,
          "knee_backward_deg": KNEE_BACKWARD_DEG, "twisted_deg": TWISTED_DEG,
          **weights_record(args.weights, weights),

@@ -44,7 +44,8 @@ import matplotlib
 import numpy as np
 
 from accuracy import (load_sequence, run_sequence, select_sequences, sequence_metrics,
-                      weights_record)
+                      weights_record, write_text)
+from minretarget.atomic import atomic_write
 from minretarget.metrics import (ACCELERATION_FRAMES, METRIC_NAMES, acceleration_error,
                                  procrustes_align)
 from minretarget.weights import load_weights
@@ -245,7 +246,8 @@ def plot_sweep(name, values, rows, path, marks=(), references=None):
     axes[0].legend(fontsize=7, loc="lower right")
     figure.suptitle(f"Robustness: {SWEEP_AXES[name]}")
     figure.tight_layout()
-    figure.savefig(path, dpi=90)
+    with atomic_write(path) as file:
+        figure.savefig(file, format="png", dpi=90)
     plt.close(figure)
 
 
@@ -318,7 +320,7 @@ def main(argv=None):
     print(f"\n{len(sequences)} sequences, {sum(len(s['source_points']) for s in sequences)} "
           f"frames, {len(todo)} conditions in {seconds:.0f} s; figures in {out}")
     if args.json:
-        Path(args.json).write_text(json.dumps(
+        write_text(args.json, json.dumps(
             {"sweeps": report, "sequences": [str(s["name"]) for s in sequences],
              "frames_per_sequence": args.frames, "stored_points": stored, "seed": args.seed,
              **weights_record(args.weights, weights), "seconds": round(seconds, 1)}, indent=2))

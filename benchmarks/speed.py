@@ -44,7 +44,7 @@ from minretarget.smrm import retarget_step
 from minretarget.weights import load_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import weights_record  # noqa: E402
+from accuracy import weights_record, write_text  # noqa: E402
 
 DEFAULT_SETTING = (2048, 13718)
 SETTINGS = [(p, v) for p in (1024, 2048, 6890) for v in (6890, 13718)]
@@ -409,8 +409,7 @@ def main():
           f"{rss[0]:.1f} -> {rss[-1]:.1f} MB over {results['memory_frames']} frames; offline "
           f"{results['offline_fps']:.1f} frames/s")
     if args.json:
-        with open(args.json, "w") as file:
-            json.dump(results, file, indent=2)
+        write_text(args.json, json.dumps(results, indent=2))
 
 
 if __name__ == "__main__":

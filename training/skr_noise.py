@@ -21,6 +21,7 @@ import json
 
 import numpy as np
 
+from minretarget.atomic import atomic_write
 from minretarget.conventions import JOINT_NAMES
 from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
@@ -78,8 +79,8 @@ def main(argv=None):
         print(f"{name:>16}: bias {100 * values['bias_std']:.1f} cm, "
               f"frame {100 * values['frame_std']:.1f} cm")
     if args.json:
-        with open(args.json, "w") as file:
-            json.dump(statistics, file, indent=1)
+        with atomic_write(args.json) as file:
+            file.write(json.dumps(statistics, indent=1).encode())
 
 
 if __name__ == "__main__":

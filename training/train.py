@@ -726,7 +726,8 @@ def main(argv=None):
                                  rest_pose=None)
     run_dir = Path(args.out)
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "recipe.json").write_text(recipe.to_json())
+    with atomic_write(run_dir / "recipe.json") as file:
+        file.write(recipe.to_json().encode())
     torch.manual_seed(recipe.seed)
     # The recipe's own stages: refine and denoise only if its model has them.
     optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}

@@ -6,6 +6,7 @@ strongest joint (skinning weights), with the skeleton drawn over it and the floo
 """
 import numpy as np
 
+from minretarget.atomic import atomic_write
 from minretarget.conventions import JOINT_NAMES, PARENTS
 
 from .bodies import benchmark_bodies, body_from_seed, get_body, pose_body
@@ -100,5 +101,6 @@ def render(motion, actor_hip_height, path, frames=5, span=60, cache_dir=None):
     figure.suptitle(f"{motion.name} on anny bodies (colour: strongest joint; black: skeleton; "
                     "grey line: floor)")
     figure.tight_layout()
-    figure.savefig(path, dpi=110)
+    with atomic_write(path) as file:
+        figure.savefig(file, format="png", dpi=110)
     plt.close(figure)
