@@ -52,7 +52,8 @@ sequences (``paired_difference``), and on how many sequences the model is better
 --from-json OUT.json prints every table again from a saved run, computing nothing.
 --compare OTHER.json adds the same paired comparison of the model with the model of a saved
 run over the same sequences (other weights, say: ``against_saved``); a saved run of another
-split, or quick against full, is refused before the run starts.
+split, quick against full, or of other sequences (their names, and their lengths where known
+before loading: validation and dances) is refused before the run starts.
 --quick: a fixed subset (the first 150 frames of the first two sequences of each category),
 about 3 minutes. --validation: the same rows on validation trials (held-out training
 subjects and bodies), for choosing between weights or settings without the test split.
@@ -252,18 +253,24 @@ def paired_difference(results, row, baseline, samples=BOOTSTRAP_SAMPLES, seed=0)
     return out
 
 
+def check_same_sequences(planned, saved_results):
+    """ValueError naming the first difference unless the (name, frames) pairs ``planned``
+    (frames None: not known yet) are the saved run's sequences, in order."""
+    for k, ((name, frames), theirs) in enumerate(zip(planned, saved_results)):
+        if name != theirs["sequence"] or frames not in (None, theirs["frames"]):
+            raise ValueError(f"--compare: sequence {k} is {name} ({frames or '?'} frames) here "
+                             f"but {theirs['sequence']} ({theirs['frames']} frames) in the "
+                             "saved run")
+    if len(planned) != len(saved_results):
+        raise ValueError(f"--compare: {len(planned)} sequences here, {len(saved_results)} in "
+                         "the saved run")
+
+
 def against_saved(results, saved_results):
     """This run's model row against a saved run's, sequence by sequence, as
     ``paired_difference`` (below zero: this run better). Both must hold the same sequences in
-    the same order, or ValueError names the first that differs."""
-    for k, (ours, theirs) in enumerate(zip(results, saved_results)):
-        if (ours["sequence"], ours["frames"]) != (theirs["sequence"], theirs["frames"]):
-            raise ValueError(f"--compare: sequence {k} is {ours['sequence']} ({ours['frames']} "
-                             f"frames) here but {theirs['sequence']} ({theirs['frames']} "
-                             "frames) in the saved run")
-    if len(results) != len(saved_results):
-        raise ValueError(f"--compare: {len(results)} sequences here, {len(saved_results)} in "
-                         "the saved run")
+    the same order (``check_same_sequences``)."""
+    check_same_sequences([(r["sequence"], r["frames"]) for r in results], saved_results)
     pairs = [{"frames": ours["frames"], "metrics": {"this run": ours["metrics"]["model"],
                                                     "saved": theirs["metrics"]["model"]}}
              for ours, theirs in zip(results, saved_results)]
@@ -375,11 +382,18 @@ def main(argv=None):
     weights = load_weights(args.weights)
     if split != "test":
         from training.data.datasets import dance_sequences, validation_sequences
-        held_out = validation_sequences if args.validation else dance_sequences
-        loaders = [build for _, build in held_out(args.cmu)]
+        held_out = (validation_sequences if args.validation else dance_sequences)(args.cmu)
+        loaders = [sequence.build for sequence in held_out]
+        planned = [(sequence.name, sequence.frames) for sequence in held_out]
     else:
         paths, frames = select_sequences(sorted(test_dir.glob("*.npz")), args.quick)
         loaders = [functools.partial(load_sequence, path, frames) for path in paths]
+        planned = [(path.stem, None) for path in paths]    # lengths known once loaded
+    if other is not None:   # refused now, not after the run
+        try:
+            check_same_sequences(planned, other)
+        except ValueError as error:
+            parser.error(str(error))
     started, results, model_seconds = time.perf_counter(), [], 0.0
     for index, load in enumerate(loaders):
         sequence = load()

@@ -103,6 +103,19 @@ def test_compare_pairs_the_model_with_a_saved_runs_model(tmp_path, capsys):
     assert "scored test sequences (quick), this run validation" in capsys.readouterr().err
 
 
+def test_compare_refuses_a_run_of_other_sequences_before_loading_any(tmp_path, capsys):
+    (tmp_path / "test").mkdir()
+    for name in ("a", "b"):                    # never loaded: the check comes first
+        (tmp_path / "test" / f"{name}.npz").write_bytes(b"not an npz")
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"per_sequence": results([0.0, 0.0], [3, 1]), "split": "test"}))
+    with pytest.raises(SystemExit) as stop:
+        accuracy.main(["--data", str(tmp_path), "--compare", str(other), "--rows", "model"])
+    assert stop.value.code == 2
+    assert "--compare: sequence 0 is a (? frames) here but s0 (3 frames)" in \
+        capsys.readouterr().err
+
+
 def test_weights_record_names_the_bytes_measured(tmp_path):
     """A saved run records the weights' SHA-256: the shipped file's matches the one recorded
     beside it, and a copy under another name records the same digest, its path as given."""

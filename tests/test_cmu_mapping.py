@@ -287,7 +287,9 @@ def test_broken_feet_are_in_training_dances_only_and_the_loaded_motions_are_cut_
 @needs_cmu
 def test_the_dance_set_keeps_each_trials_longest_run_without_broken_feet():
     from training.data.datasets import dance_sequences
-    builds = {trial.name: build for trial, build in dance_sequences(CMU_DIR)}
+    held_out = {sequence.trial.name: sequence for sequence in dance_sequences(CMU_DIR)}
+    assert (held_out["05_06"].name, held_out["05_06"].frames) == ("05_06@0", 31)
+    builds = {name: sequence.build for name, sequence in held_out.items()}
     sequence = builds["05_06"]()              # 179 of frames 31-219 past the limit
     assert str(sequence["name"]) == "05_06@0" and len(sequence["source_points"]) == 31
     assert not broken_ankle_frames(sequence["rotations"]).any()
@@ -299,7 +301,8 @@ def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seed
     """Each validation trial keeps its place k in the draw over every trial (its bodies and
     seed: the benchmark figures stored since depend on it); place 9 was the broken 09_10's."""
     from training.data.datasets import validation_sequences
-    drawn = {build.args[1]: trial.name for trial, build in validation_sequences(CMU_DIR)}
+    drawn = {sequence.build.args[1]: sequence.trial.name
+             for sequence in validation_sequences(CMU_DIR)}
     assert drawn == {0: "09_06", 1: "06_05", 2: "06_11", 3: "06_12", 4: "09_12", 5: "06_03",
                      6: "09_11", 7: "06_07", 8: "09_03", 10: "06_04", 11: "09_08",
                      12: "06_09"}
@@ -308,10 +311,11 @@ def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seed
 @needs_cmu
 def test_the_dance_set_is_training_motion_on_validation_bodies():
     from training.data.datasets import DANCE_TRIALS, VALIDATION_SUBJECTS, dance_sequences
-    trials = dance_sequences(CMU_DIR)
-    assert [trial.name for trial, _ in trials] == list(DANCE_TRIALS)
-    assert [build.args[1] for _, build in trials] == list(range(len(DANCE_TRIALS)))
-    for trial, _ in trials:
+    held_out = dance_sequences(CMU_DIR)
+    assert [sequence.trial.name for sequence in held_out] == list(DANCE_TRIALS)
+    assert [sequence.build.args[1] for sequence in held_out] == list(range(len(DANCE_TRIALS)))
+    assert sum(sequence.frames for sequence in held_out) == 6954
+    for trial in (sequence.trial for sequence in held_out):
         assert trial.split == "train" and trial.subject not in VALIDATION_SUBJECTS
         assert trial.category in ("dance", "salsa", "martial") and trial.name not in BROKEN_TRIALS
 

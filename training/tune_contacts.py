@@ -45,7 +45,7 @@ def validation_streams(weights, cmu_dir, cache_dir):
     cache_dir = Path(cache_dir) / cache_key(weights, Smoothing())[:16]
     cache_dir.mkdir(parents=True, exist_ok=True)
     streams = []
-    for trial, build in validation_sequences(cmu_dir, TRIALS, MAX_FRAMES):
+    for trial, _, _, build in validation_sequences(cmu_dir, TRIALS, MAX_FRAMES):
         path = cache_dir / f"{trial.name}.npz"
         if not path.is_file():
             sequence = build()

@@ -55,6 +55,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from tqdm import tqdm
@@ -65,8 +66,8 @@ from minretarget.kinematics import forward_kinematics, quaternion_multiply
 
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
                      sampled_body_seeds)
-from .cmu import (BROKEN_TRIALS, MIN_SEGMENT_FRAMES, broken_ankle_frames, clean_segments,
-                  cmu_tpose_joints, list_trials, load_motion, trial_of)
+from .cmu import (BROKEN_TRIALS, MIN_SEGMENT_FRAMES, Trial, broken_ankle_frames,
+                  clean_segments, cmu_tpose_joints, list_trials, load_motion, trial_of)
 from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 # Training subjects held out for validation (basketball and running; about 3,000 frames).
@@ -492,7 +493,7 @@ def validation_sequences(cmu_dir, trials=12, max_frames=240, points=2048):
     the held-out training subjects (VALIDATION_SUBJECTS; not the broken ``cmu.BROKEN_TRIALS``,
     whose place the next trial drawn takes), at most ``max_frames`` frames each, on held-out
     validation bodies (source and target differ), sampled as the test benchmark is. Returns
-    (trial, build) pairs: ``build()`` makes the sequence (seconds of work, so a caller with a
+    ``HeldOutSequence``s: ``build()`` makes the sequence (seconds of work, so a caller with a
     cache can skip it); the same every time (fixed seeds)."""
     # drawn from every trial, broken ones then skipped: the others keep their bodies and seeds
     chosen = [t for t in list_trials(cmu_dir, include_broken=True)
@@ -517,7 +518,7 @@ DANCE_TRIALS = ("05_02", "05_06", "05_08", "05_12", "05_14", "05_18", "martial_0
 
 def dance_sequences(cmu_dir, max_frames=600, points=2048):
     """Benchmark sequences of ``DANCE_TRIALS`` on held-out validation bodies, as
-    ``validation_sequences`` makes them (its seeds offset); (trial, build) pairs likewise."""
+    ``validation_sequences`` makes them (its seeds offset), as ``HeldOutSequence``s."""
     trials = {t.name: t for t in list_trials(cmu_dir)}
     missing = [name for name in DANCE_TRIALS if name not in trials]
     if missing:
@@ -526,15 +527,24 @@ def dance_sequences(cmu_dir, max_frames=600, points=2048):
                                  max_frames, points, seed=1)
 
 
+class HeldOutSequence(NamedTuple):
+    """One sequence of ``validation_sequences`` or ``dance_sequences``, known before it is
+    built: a caller can check names and lengths (against a saved run, say) at once."""
+    trial: Trial
+    name: str            # the sequence's: the trial's, or "<trial>@<first frame>" for a run
+    frames: int
+    build: object        # () -> the sequence's dict, as ``benchmark_sequence`` makes it
+
+
 def _on_validation_bodies(numbered_trials, max_frames, points, seed):
-    """(k, Trial) pairs -> (trial, build) pairs, ``build()`` making trial k's benchmark
-    sequence (its first ``max_frames`` frames at most, then the longest run of them without
-    broken feet, ``cmu.clean_segments``) with validation bodies 2k and 2k + 1 (mod 15) as
-    source and target and its randomness seeded (seed, k)."""
+    """(k, Trial) pairs -> ``HeldOutSequence``s, trial k's benchmark sequence (its first
+    ``max_frames`` frames at most, then the longest run of them without broken feet,
+    ``cmu.clean_segments``) with validation bodies 2k and 2k + 1 (mod 15) as source and
+    target and its randomness seeded (seed, k)."""
     actor_hip_height = float(cmu_tpose_joints(numbered_trials[0][1].path)[0, 1])
     bodies = [body_from_seed(s) for s in sampled_body_seeds(15, "val")]
 
-    def build(trial, k):
+    def motion_of(trial):
         motion = load_motion(trial.path, fps=FPS)
         motion = dataclasses.replace(motion, rotations=motion.rotations[:max_frames],
                                      root=motion.root[:max_frames])
@@ -542,10 +552,18 @@ def _on_validation_bodies(numbered_trials, max_frames, points, seed):
         if motion is None:
             raise ValueError(f"trial {trial.name}: no {MIN_SEGMENT_FRAMES} frames in a row "
                              f"without broken feet in its first {max_frames}")
+        return motion
+
+    def build(motion, k):
         return benchmark_sequence(motion, bodies[2 * k % 15], bodies[(2 * k + 1) % 15],
                                   points, actor_hip_height, np.random.default_rng([seed, k]))
 
-    return [(trial, functools.partial(build, trial, k)) for k, trial in numbered_trials]
+    held_out = []
+    for k, trial in numbered_trials:
+        motion = motion_of(trial)
+        held_out.append(HeldOutSequence(trial, motion.name, len(motion.rotations),
+                                        functools.partial(build, motion, k)))
+    return held_out
 
 
 # ----------------------------------------------------------------------------- build
