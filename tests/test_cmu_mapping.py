@@ -11,9 +11,10 @@ from minretarget.conventions import JOINT_INDEX
 from minretarget.kinematics import forward_kinematics
 from minretarget.skeletons import CMU_BONES, canonical_world
 from training.data.cmu import (ANKLE_LIMIT_DEGREES, BROKEN_FLOOR_HEIGHT, BROKEN_TRIALS,
-                               LEAD_IN_FRAMES, MIN_SEGMENT_FRAMES, Motion, broken_ankle_frames,
-                               capture_fps, clean_segments, cmu_tpose_joints, floor_height,
-                               list_trials, load_motion, local_quaternions, tpose_joints)
+                               LEAD_IN_FRAMES, MIN_SEGMENT_FRAMES, Motion, Trial,
+                               broken_ankle_frames, capture_fps, clean_segments,
+                               cmu_tpose_joints, floor_height, list_trials, load_motion,
+                               local_quaternions, tpose_joints)
 
 CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu"
 WALK = CMU_DIR / "cgspeed" / "02" / "02_01.bvh.gz"
@@ -261,27 +262,39 @@ def test_the_broken_trials_are_the_sunken_ones():
         assert name in BROKEN_TRIALS or abs(height) < 0.2, (name, height)
 
 
+def test_cmu_motions_cut_broken_feet_unless_kept(monkeypatch):
+    """cmu_motions hands every split's motions through clean_segments, or whole if asked."""
+    from training.data import datasets
+    broken = np.zeros(100)
+    broken[40] = 170
+    fake = {"salsa_99": (_turned_ankles(broken), "train"), "08_99": (_turned_ankles([0] * 50),
+                                                                      "test")}
+    trials = [Trial(name, Path(f"{name}.bvh.gz"), name[:2], "walk", split)
+              for name, (_, split) in fake.items()]
+    monkeypatch.setattr(datasets, "list_trials", lambda cmu_dir, include_broken: trials)
+    monkeypatch.setattr(datasets, "cmu_tpose_joints", lambda path: np.ones((22, 3)))
+    monkeypatch.setattr(datasets, "load_motion", lambda path, fps: Motion(
+        Path(path).name[:-7], fake[Path(path).name[:-7]][0],
+        np.zeros((len(fake[Path(path).name[:-7]][0]), 3), np.float32), fps, "walk", 120.0))
+    cut, _ = datasets.cmu_motions("cmu", show_progress=False)
+    assert [(m.name, len(m.rotations)) for m in cut["train"]] == [("salsa_99@0", 40),
+                                                                   ("salsa_99@41", 59)]
+    assert [m.name for m in cut["test"]] == ["08_99"]
+    kept, _ = datasets.cmu_motions("cmu", show_progress=False, keep_broken_ankles=True)
+    assert [(m.name, len(m.rotations)) for m in kept["train"]] == [("salsa_99", 100)]
+
+
 @needs_cmu
-def test_broken_feet_are_in_training_dances_only_and_the_loaded_motions_are_cut_around_them():
-    """The measured 05_06 and salsa_01 runs (cmu.ANKLE_LIMIT_DEGREES' comment); no test trial
-    has a broken foot; cmu_motions cuts them unless asked to keep them."""
-    from training.data.datasets import cmu_motions
-    trials = {t.name: t for t in list_trials(CMU_DIR)}
-    salsa = np.flatnonzero(broken_ankle_frames(load_motion(trials["salsa_01"].path).rotations))
+def test_broken_feet_are_where_measured_and_not_in_the_test_split():
+    """The measured 05_06 and salsa_01 runs (docs/training_notes.md, "Broken feet in the
+    training dances"); no test trial has a broken foot, so the test data is as it was."""
+    trials = list_trials(CMU_DIR)
+    by_name = {t.name: t for t in trials}
+    salsa = np.flatnonzero(broken_ankle_frames(load_motion(by_name["salsa_01"].path).rotations))
     assert (salsa.min(), salsa.max(), len(salsa)) == (356, 448, 93)
-    assert broken_ankle_frames(load_motion(trials["05_06"].path).rotations).sum() == 179
-    motions, _ = cmu_motions(CMU_DIR, show_progress=False)
-    kept, _ = cmu_motions(CMU_DIR, show_progress=False, keep_broken_ankles=True)
-    for split in motions:
-        assert not any(broken_ankle_frames(m.rotations).any() for m in motions[split])
-    assert [m.name for m in motions["test"]] == [m.name for m in kept["test"]]
-    assert [m.name for m in motions["val"]] == [m.name for m in kept["val"]]
-    assert [m.name for m in motions["train"] if m.name.startswith("salsa_01")] == [
-        "salsa_01@0", "salsa_01@449"]
-    frames = {split: sum(len(m.rotations) for m in motions[split]) for split in motions}
-    kept_frames = {split: sum(len(m.rotations) for m in kept[split]) for split in kept}
-    assert kept_frames["train"] - frames["train"] == 630          # 602 broken, 28 in short runs
-    assert (frames["val"], frames["test"]) == (kept_frames["val"], kept_frames["test"])
+    assert broken_ankle_frames(load_motion(by_name["05_06"].path).rotations).sum() == 179
+    for trial in (t for t in trials if t.split == "test"):
+        assert not broken_ankle_frames(load_motion(trial.path).rotations).any(), trial.name
 
 
 @needs_cmu
@@ -289,11 +302,10 @@ def test_the_dance_set_keeps_each_trials_longest_run_without_broken_feet():
     from training.data.datasets import dance_sequences
     held_out = {sequence.trial.name: sequence for sequence in dance_sequences(CMU_DIR)}
     assert (held_out["05_06"].name, held_out["05_06"].frames) == ("05_06@0", 31)
-    builds = {name: sequence.build for name, sequence in held_out.items()}
-    sequence = builds["05_06"]()              # 179 of frames 31-219 past the limit
+    sequence = held_out["05_06"].build()      # 179 of frames 31-219 past the limit
     assert str(sequence["name"]) == "05_06@0" and len(sequence["source_points"]) == 31
     assert not broken_ankle_frames(sequence["rotations"]).any()
-    assert len(builds["05_02"]()["source_points"]) == 279           # a clean trial, whole
+    assert (held_out["05_02"].name, held_out["05_02"].frames) == ("05_02", 279)   # whole
 
 
 @needs_cmu
