@@ -1,5 +1,6 @@
 """The training loop end to end on tiny synthetic datasets: every stage, export, resume."""
 import json
+import types
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from training import kinematics  # noqa: E402
 from training.losses import foot_velocity_error, rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
 from training.analytic import analytic_rotations  # noqa: E402
-from training.train import (initial_models, main, retarget_ground_truth,  # noqa: E402
+from training.train import (fit_steps, initial_models, main, retarget_ground_truth,  # noqa: E402
                             smoothed_skeletons, source_noise)
 
 TINY_RECIPE = {
@@ -401,3 +402,76 @@ def test_ground_truth_on_the_same_body_is_the_source_motion():
     taller = tpose * 2   # twice the size: twice the root, twice every bone
     torch.testing.assert_close(retarget_ground_truth(rotations, root, tpose, taller),
                                source * 2, atol=1e-5, rtol=1e-5)
+
+
+def test_fit_steps_fills_the_time_left_at_the_pace_so_far():
+    assert fit_steps(20, 0.5, 50.0, cap=1000) == 120     # 50 s left at 0.5 s a step
+    assert fit_steps(20, 0.5, 50.0, cap=50) == 50        # never past the recipe
+    assert fit_steps(20, 0.5, -1.0, cap=1000) == 21      # past the deadline: one more
+    assert fit_steps(20, 0.5, 0.1, cap=1000) == 21
+
+
+class FakeClock:
+    """time.perf_counter for training.train, advanced by hand."""
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.mark.parametrize("seconds_per_step, seconds_per_evaluation", [(0.5, 1.0), (0.01, 0.0)])
+def test_a_time_budget_cuts_the_schedule_to_fit_and_resumes_it(tmp_path, monkeypatch,
+                                                                seconds_per_step,
+                                                                seconds_per_evaluation):
+    """Steps of 0.5 s and an evaluation of 1 s first and every 10 steps under a 20 s budget:
+    30 of the recipe's 1,000 steps (1 s, then 0.6 s a step, and 1 s for the last
+    evaluation), ending within the budget, the learning rate decayed to its floor by the last
+    step; a resumed stage keeps the cut schedule. At 0.01 s a step the whole recipe fits and
+    nothing is cut."""
+    import training.train as train
+    clock = FakeClock()
+    monkeypatch.setattr(train, "time", types.SimpleNamespace(perf_counter=clock))
+    monkeypatch.setattr(train.Stage, "write_log", lambda self: None)
+
+    def stage():
+        layer = torch.nn.Linear(2, 1)
+        optimizer = torch.optim.SGD(layer.parameters(), lr=1.0)
+        return train.Stage("toy", tmp_path, {"toy": layer}, {"toy": optimizer}, steps=1000,
+                           eval_every=10, seed=0)
+    rates = []
+
+    def train_step(stage):
+        clock.now += seconds_per_step
+        rates.append(stage.optimizers["toy"].param_groups[0]["lr"])
+        return {"loss": 0.0}
+
+    def evaluate():
+        clock.now += seconds_per_evaluation
+        return {}
+
+    toy = stage()
+    assert toy.run(train_step, evaluate, resume=False, limit=train.Limit(seconds=20.0))
+    if seconds_per_evaluation == 0.0:
+        assert toy.steps == 1000 and not toy.planned
+        return
+    assert toy.planned and toy.steps == toy.step == 30
+    assert clock.now <= 20.0
+    assert [row["step"] for row in toy.rows] == [0, 10, 20, 30]
+    assert rates[-1] == pytest.approx(0.1, abs=0.01)    # the cosine's floor: 10 % of base
+    resumed = stage()
+    resumed.load()
+    assert (resumed.step, resumed.steps, resumed.planned) == (toy.steps, toy.steps, True)
+
+
+def test_stage_seconds_from_the_command_line(run, tmp_path, capsys):
+    """A budget the tiny recipe fits in leaves its schedule whole; a non-positive one is
+    refused by name."""
+    common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--threads", "1"]
+    main(["skr", "--stage-seconds", "600", "--out", str(tmp_path / "timed")] + common)
+    state = torch.load(tmp_path / "timed" / "skr.pt", weights_only=True)
+    assert (state["step"], state["steps"], state["planned"]) == (6, 6, False)
+    for bad in ("0", "-5", "nan"):
+        with pytest.raises(SystemExit):
+            main(["skr", "--stage-seconds", bad, "--out", str(tmp_path / "bad")] + common)
+        assert "positive number of seconds" in capsys.readouterr().err

@@ -4,6 +4,7 @@
                              --out runs/cpu
                              [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
                              [--scratch STAGES] [--set KEY=VALUE ...] [--pack FILE]
+                             [--stop-at STEP] [--stage-seconds S]
 
 Each stage writes into --out: ``<stage>.pt`` (checkpoint, written atomically every eval),
 ``<stage>.csv`` (losses and validation metrics), ``<stage>.png`` (their plot). ``all`` then
@@ -14,6 +15,8 @@ file, stages not listed keep its networks, and the export happens after any stag
 --init. ``--set smrm.clip_frames=10`` overrides one recipe value (ablations); the run's
 recipe.json and the weights' metadata record the recipe as run.
 --resume continues each unfinished stage from its checkpoint; finished stages are skipped.
+``--stop-at STEP`` stops each stage there, to resume later; ``--stage-seconds S`` fits each
+stage's schedule to S seconds of wall clock instead (a lent GPU's few minutes).
 ``--pack FILE`` (a data pack, ``training.data.pack``): SKR poses fresh frames for every batch
 on the training device (``training.data.online``) instead of reading ``skr_train.npz`` (for a
 long run on a GPU, which would otherwise see a build's frames over and over); the other
@@ -29,6 +32,7 @@ import math
 import subprocess
 import time
 from pathlib import Path
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -57,6 +61,7 @@ from training.recipe import load_recipe
 # refine and denoise only where the config has a refiner and a denoiser
 STAGES = ("skr", "refine", "denoise", "skin", "smrm")
 VALIDATION_LIMIT = 2048   # validation samples per evaluation, to bound its time
+PLAN_AFTER_STEPS = 16     # steps timed before a time budget first sizes a stage's schedule
 
 
 def load_split(data_dir, name, device):
@@ -80,6 +85,31 @@ def learning_rate(step, steps, base):
     return base * (0.1 + 0.45 * (1 + math.cos(math.pi * progress)))
 
 
+class Limit(NamedTuple):
+    """Where a stage stops short of its recipe: at a step (checkpointed, to resume), and/or
+    within seconds of wall clock (its schedule cut to fit; ``Stage.run``)."""
+    step: Optional[int] = None
+    seconds: Optional[float] = None
+
+
+def fit_steps(step, seconds_per_step, seconds_left, cap):
+    """The step count a stage can reach from ``step`` with ``seconds_left`` of wall clock at
+    ``seconds_per_step`` (its evaluations' share included): at most ``cap`` in all, and at
+    least one more step (the last, which evaluates)."""
+    more = int(seconds_left / seconds_per_step) if seconds_left > 0 else 0
+    return max(step + 1, min(cap, step + more))
+
+
+@dataclasses.dataclass
+class StageClock:
+    """A run's wall clock (``Stage.run``): when it started, at which step, and the seconds
+    its evaluations took, in all and the last one."""
+    started: float
+    first: int
+    evaluating: float = 0.0
+    last_evaluation: float = 0.0
+
+
 class ResumeMismatch(ValueError):
     """A checkpoint made on other training data than the resuming run's."""
 
@@ -93,6 +123,8 @@ class Stage:
         self.name, self.run_dir, self.source = name, Path(run_dir), source
         self.modules, self.optimizers = modules, optimizers
         self.steps, self.eval_every = steps, eval_every
+        self.recipe_steps = steps   # self.steps may be cut to fit a time budget (run)
+        self.planned = False        # whether it was
         self.base_rates = {k: o.param_groups[0]["lr"] for k, o in optimizers.items()}
         self.generator = torch.Generator().manual_seed(seed)
         self.step = 0
@@ -108,7 +140,7 @@ class Stage:
                  "modules": {k: m.state_dict() for k, m in self.modules.items()},
                  "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                  "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
-                 "source": self.source}
+                 "source": self.source, "steps": self.steps, "planned": self.planned}
         buffer = io.BytesIO()
         torch.save(state, buffer)
         with atomic_write(self.checkpoint_path) as file:
@@ -126,21 +158,35 @@ class Stage:
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
         self.step, self.rows, self.running = state["step"], state["rows"], state["running"]
+        if state.get("planned"):   # a schedule cut to a time budget goes on as cut
+            self.steps, self.planned = state["steps"], True
 
     def batch(self, count, size):
         return torch.randint(count, (size,), generator=self.generator)
 
-    def run(self, train_step, evaluate, resume, stop_at=None):
-        """Call ``train_step(stage) -> {loss: float}`` until ``steps`` (or ``stop_at``, with a
-        checkpoint to resume from); evaluate with ``evaluate() -> {metric: float}`` every
-        ``eval_every`` steps and at the end. Returns whether the stage is finished."""
+    def run(self, train_step, evaluate, resume, limit=None):
+        """Call ``train_step(stage) -> {loss: float}`` until ``steps`` (or ``limit.step``, with
+        a checkpoint to resume from); evaluate with ``evaluate() -> {metric: float}`` every
+        ``eval_every`` steps and at the end. With ``limit.seconds``, it evaluates first too
+        (the weights it starts from, and how long an evaluation takes), and the step count is
+        cut to what fits that wall clock (``fit_steps``: sized after PLAN_AFTER_STEPS steps,
+        twice as many, four times, ..., and at each evaluation, the final evaluation's time
+        kept free), so that the learning-rate schedule still runs its course; past the
+        deadline the next step is the last. Returns whether the stage is finished."""
+        stop_at, seconds = limit or Limit()
         if resume and self.checkpoint_path.exists():
             self.load()
             print(f"{self.name}: resumed at step {self.step}/{self.steps}")
-        end = self.steps if stop_at is None else min(self.steps, stop_at)
         progress = tqdm(total=self.steps, initial=self.step, desc=self.name, unit="step")
-        started = time.perf_counter()
-        while self.step < end:
+        clock = StageClock(time.perf_counter(), self.step)
+        if seconds is not None and self.step < self.steps:
+            self.evaluate(evaluate, clock, progress)
+        while self.step < (self.steps if stop_at is None else min(self.steps, stop_at)):
+            done = self.step - clock.first
+            if seconds is not None and done > 0 and (
+                    (done >= PLAN_AFTER_STEPS and done & (done - 1) == 0)   # 16, 32, 64, ...
+                    or time.perf_counter() - clock.started > seconds - clock.last_evaluation):
+                self.plan(clock, seconds, progress)
             for key, optimizer in self.optimizers.items():
                 for group in optimizer.param_groups:
                     group["lr"] = learning_rate(self.step, self.steps, self.base_rates[key])
@@ -151,24 +197,49 @@ class Stage:
             self.step += 1
             progress.update(1)
             if self.step % self.eval_every == 0 or self.step == self.steps:
-                for module in self.modules.values():
-                    module.eval()
-                with torch.no_grad():
-                    metrics = evaluate()
-                count = (self.step - 1) % self.eval_every + 1   # steps summed in running
-                row = {"step": self.step, "seconds": round(time.perf_counter() - started, 1),
-                       **{k: v / count for k, v in self.running.items()}, **metrics}
-                self.rows.append(row)
-                self.running = {}
-                progress.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()})
+                self.evaluate(evaluate, clock, progress)
+                if (seconds is not None and self.step - clock.first >= PLAN_AFTER_STEPS
+                        and self.step < self.steps):
+                    self.plan(clock, seconds, progress)
                 self.save()
                 self.write_log()
         if self.step < self.steps:
             self.save()
         progress.close()
+        if self.planned:
+            print(f"{self.name}: {self.steps:,} of the recipe's {self.recipe_steps:,} steps, "
+                  "to fit the time budget")
         for module in self.modules.values():
             module.eval()
         return self.step == self.steps
+
+    def evaluate(self, evaluate, clock, progress):
+        """One row of the log: the mean losses since the last one and the metrics now."""
+        for module in self.modules.values():
+            module.eval()
+        began = time.perf_counter()
+        with torch.no_grad():
+            metrics = evaluate()
+        clock.last_evaluation = time.perf_counter() - began
+        clock.evaluating += clock.last_evaluation
+        count = max(1, (self.step - 1) % self.eval_every + 1)   # steps summed in running
+        row = {"step": self.step, "seconds": round(time.perf_counter() - clock.started, 1),
+               **{k: v / count for k, v in self.running.items()}, **metrics}
+        self.rows.append(row)
+        self.running = {}
+        progress.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()})
+
+    def plan(self, clock, seconds, progress):
+        """Cut ``steps`` to what fits ``seconds`` at this run's pace so far."""
+        elapsed = time.perf_counter() - clock.started
+        per_step = ((elapsed - clock.evaluating) / (self.step - clock.first)
+                    + clock.last_evaluation / self.eval_every)
+        steps = fit_steps(self.step, per_step, seconds - elapsed - clock.last_evaluation,
+                          self.recipe_steps)
+        if steps != self.steps:
+            self.steps, self.planned = steps, True
+            progress.total = steps
+            progress.refresh()
 
     def write_log(self):
         """The CSV of every evaluation row so far, and its plot."""
@@ -186,7 +257,8 @@ def plot_log(rows, path, title):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    keys = [k for k in rows[0] if k not in ("step", "seconds")]
+    keys = [k for k in dict.fromkeys(k for row in rows for k in row)
+            if k not in ("step", "seconds")]
     steps = [row["step"] for row in rows]
     columns = min(4, len(keys))
     rows_of_plots = -(-len(keys) // columns)
@@ -303,7 +375,7 @@ def online_skr_data(pack, device):
     return frames("train"), source.clouds(*poses, ONLINE_FRAMES.points, generator)
 
 
-def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None, pack=None):
+def train_skr(recipe, data_dir, run_dir, device, resume, limit=None, model=None, pack=None):
     """SKR on the built frames (``skr_*.npz``), or with a data pack (``pack.load_pack``) on
     frames drawn afresh every batch; the T-pose frames always come from ``skr_tpose_*.npz``."""
     stage_recipe = recipe.skr
@@ -347,7 +419,7 @@ def train_skr(recipe, data_dir, run_dir, device, resume, stop_at=None, model=Non
         return {**joint_errors(val, "val_mpjpe", predict),
                 **joint_errors(tpose_val, "val_tpose_mpjpe", predict)}
 
-    return model, stage.run(train_step, evaluate, resume, stop_at)
+    return model, stage.run(train_step, evaluate, resume, limit)
 
 
 def skr_predictions(skr_weights, points):
@@ -360,7 +432,7 @@ def skr_predictions(skr_weights, points):
     return torch.from_numpy(joints).to(points.device)
 
 
-def train_refine(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None,
+def train_refine(recipe, data_dir, run_dir, device, resume, limit=None, model=None,
                  skr=None):
     """The joint refiner on the trained SKR's joints (computed once, on whole clouds, as the
     runtime sees them) of the SKR datasets: MSE to the true joints."""
@@ -402,7 +474,7 @@ def train_refine(recipe, data_dir, run_dir, device, resume, stop_at=None, model=
                 **joint_errors(tpose_val, "val_tpose_mpjpe", refined),
                 **joint_errors(tpose_val, "val_tpose_mpjpe_skr", skr_alone)}
 
-    return model, stage.run(train_step, evaluate, resume, stop_at)
+    return model, stage.run(train_step, evaluate, resume, limit)
 
 
 def smoothed_skeletons(skr_weights, refine_weights, neighbours, points, starts):
@@ -426,7 +498,7 @@ def smoothed_skeletons(skr_weights, refine_weights, neighbours, points, starts):
     return torch.from_numpy(joints).to(points.device)
 
 
-def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None,
+def train_denoise(recipe, data_dir, run_dir, device, resume, limit=None, model=None,
                   skr=None, refine=None):
     """The skeleton denoiser on the smoothed skeletons of the trained SKR (and refiner) of
     whole trials (``sequences_*.npz``, computed once, as the runtime sees them): the mean
@@ -493,10 +565,10 @@ def train_denoise(recipe, data_dir, run_dir, device, resume, stop_at=None, model
         return dict(zip(("val_mpjpe", "val_acc", "val_foot_velocity", "val_mpjpe_smoothed",
                          "val_acc_smoothed", "val_foot_velocity_smoothed"), totals.tolist()))
 
-    return model, stage.run(train_step, evaluate, resume, stop_at)
+    return model, stage.run(train_step, evaluate, resume, limit)
 
 
-def train_skin(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
+def train_skin(recipe, data_dir, run_dir, device, resume, limit=None, model=None):
     stage_recipe = recipe.skin
     train, val = (load_split(data_dir, f"skin_{s}", device) for s in ("train", "val"))
     model = (model or SkinningField(recipe.model)).to(device)
@@ -529,7 +601,7 @@ def train_skin(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
                            "val_vertex_error_jittered": float(loss_of(
                                val, index, stage_recipe.joint_noise, generator))})
 
-    return model, stage.run(train_step, evaluate, resume, stop_at)
+    return model, stage.run(train_step, evaluate, resume, limit)
 
 
 def source_noise(shape, stage_recipe, generator):
@@ -559,7 +631,7 @@ def retarget_ground_truth(rotations, root, source_tpose, target_tpose):
     return joints
 
 
-def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=None):
+def train_smrm(recipe, data_dir, run_dir, device, resume, limit=None, model=None):
     stage_recipe = recipe.smrm
     train, val = (load_split(data_dir, f"smrm_{s}", device) for s in ("train", "val"))
     model = (model or MotionRetargeter(recipe.model)).to(device)
@@ -631,7 +703,7 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, stop_at=None, model=No
                     "val_mpjpe_noisy_source": float((noisy - truth).norm(dim=-1).mean())}
         return mean_over_batches(val_count, 128, errors)
 
-    return model, stage.run(train_step, evaluate, resume, stop_at)
+    return model, stage.run(train_step, evaluate, resume, limit)
 
 
 # ----------------------------------------------------------------------------- command line
@@ -664,6 +736,13 @@ def provenance(recipe, data_dir, init=None, pack=None):
     if init is not None:
         out["init"] = init.metadata
     return out
+
+
+def positive_seconds(text):
+    seconds = float(text)
+    if not math.isfinite(seconds) or seconds <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return seconds
 
 
 def stage_list(text):
@@ -699,6 +778,11 @@ def main(argv=None):
                              "repeatable")
     parser.add_argument("--stop-at", type=int, metavar="STEP",
                         help="stop each stage at this step, checkpointed, to --resume later")
+    parser.add_argument("--stage-seconds", type=positive_seconds, metavar="S",
+                        help="train each stage for at most S seconds of wall clock (its "
+                             "loop; not the data it prepares first): its steps are cut to "
+                             "what fits, timed as it runs, and its learning-rate schedule "
+                             "still ends (a run on a lent GPU)")
     parser.add_argument("--pack", metavar="FILE",
                         help="SKR draws fresh frames every batch from this data pack "
                              "(python -m training.data pack) and validates on "
@@ -763,11 +847,12 @@ def main(argv=None):
         print("warning: the refiner is retrained but not the denoiser, which learned the old "
               "refiner's errors; train refine,denoise to retrain both")
     models, finished = initial_models(recipe, init, args.scratch), True
+    limit = Limit(args.stop_at, args.stage_seconds)
     for name in stages:
         start = time.perf_counter()
         try:
             models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
-                                                args.resume, args.stop_at, models[name])
+                                                args.resume, limit, models[name])
         except ResumeMismatch as error:
             parser.error(f"--resume: {error}")
         print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
