@@ -20,7 +20,8 @@ from training.data.datasets import BuildConfig, Frames, skr_poses  # noqa: E402
 from training.data.online import OnlineFrames, surface_points  # noqa: E402
 from training.data.pack import load_pack, pack_arrays, write_pack  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
-from training.train import main, provenance  # noqa: E402
+from training.train import (ONLINE_FRAMES, main, online_config,  # noqa: E402
+                            online_skr_data, provenance)
 
 ACTOR_HIP_HEIGHT = 0.9
 CONFIG = BuildConfig(seated_fraction=0.3, crossed_fraction=0.3)
@@ -151,6 +152,52 @@ def test_weights_trained_on_a_pack_record_it(synthetic, tmp_path):
         "sha256": digest, "motions": {"train": 2, "val": 1}, "bodies": {"train": 3, "val": 1},
         "include_broken": False, "keep_broken_ankles": False,
         "config": dataclasses.asdict(BuildConfig())}
+
+
+def test_online_config_changes_only_the_named_draws():
+    config = online_config(["crossed_fraction=0.15", "category_power=0.5"])
+    assert config == dataclasses.replace(ONLINE_FRAMES, crossed_fraction=0.15,
+                                         category_power=0.5)
+    assert online_config([]) == ONLINE_FRAMES
+    for bad, message in (("frames=10", "KEY one of max_shift"), ("crossed_fraction", "KEY=VALUE"),
+                         ("crossed_fraction=lots", "'lots' is not a number"),
+                         ("crossed_fraction=1.5", "crossed_fraction must be in")):
+        with pytest.raises(ValueError, match=message):
+            online_config([bad])
+
+
+def test_online_draws_change_training_frames_and_never_validation(synthetic, tmp_path,
+                                                                 monkeypatch, capsys):
+    """--online crossed_fraction=1: the training draws cross legs, validation's frames stay
+    the default's, the weights record it, and a resume without it is refused."""
+    motions, bodies = synthetic
+    monkeypatch.setattr(training.train, "VALIDATION_LIMIT", 50)
+    write_pack(tmp_path / "pack.npz", pack_arrays(motions, ACTOR_HIP_HEIGHT, bodies, False))
+    pack = load_pack(tmp_path / "pack.npz")
+    crossed = online_config(["crossed_fraction=1"])
+    plain_train, plain_val = online_skr_data(pack, "cpu")
+    crossed_train, crossed_val = online_skr_data(pack, "cpu", crossed)
+    for key in ("points", "joints"):
+        torch.testing.assert_close(crossed_val[key], plain_val[key])
+    assert (crossed_train.config, plain_train.config) == (crossed, ONLINE_FRAMES)
+    draws = [frames.poses(20, np.random.default_rng(5))[1] for frames in (plain_train,
+                                                                          crossed_train)]
+    assert not np.allclose(*draws)
+    recorded = provenance(load_recipe("cpu"), tmp_path, pack=pack, online=crossed)
+    assert recorded["data"]["skr_online_pack"]["config"]["crossed_fraction"] == 1.0
+
+    write_datasets(tmp_path, np.random.default_rng(0))     # the T-pose frames (skr_tpose_*)
+    (tmp_path / "tiny.json").write_text(json.dumps(TINY_RECIPE))
+    common = ["skr", "--recipe", str(tmp_path / "tiny.json"), "--data", str(tmp_path),
+              "--pack", str(tmp_path / "pack.npz"), "--out", str(tmp_path / "run"),
+              "--threads", "1"]
+    main(common + ["--online", "crossed_fraction=1", "--stop-at", "2"])
+    with pytest.raises(SystemExit):
+        main(common + ["--resume"])
+    assert "with crossed_fraction=1, this run on frames drawn from pack" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(common[:5] + common[7:] + ["--online", "crossed_fraction=1"])   # no --pack
+    assert "--online changes the frames drawn from a pack" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (a GPU session)")

@@ -4,7 +4,7 @@
                              --out runs/cpu
                              [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
                              [--scratch STAGES] [--set KEY=VALUE ...] [--pack FILE]
-                             [--stop-at STEP] [--stage-seconds S]
+                             [--online KEY=VALUE ...] [--stop-at STEP] [--stage-seconds S]
 
 Each stage writes into --out: ``<stage>.pt`` (checkpoint, written atomically every eval),
 ``<stage>.csv`` (losses and validation metrics), ``<stage>.png`` (their plot). ``all`` then
@@ -19,7 +19,8 @@ recipe.json and the weights' metadata record the recipe as run.
 stage's schedule to S seconds of wall clock instead (a lent GPU's few minutes).
 ``--pack FILE`` (a data pack, ``training.data.pack``): SKR poses fresh frames for every batch
 on the training device (``training.data.online``) instead of reading ``skr_train.npz`` (for a
-long run on a GPU, which would otherwise see a build's frames over and over); the other
+long run on a GPU, which would otherwise see a build's frames over and over), drawn as a
+default build draws them or with ``--online crossed_fraction=0.15`` and the like; the other
 stages read --data as ever.
 Validation uses the held-out training subjects and bodies (``*_val.npz``), never the test split.
 """
@@ -359,35 +360,65 @@ def initial_models(recipe, init=None, scratch=()):
 
 # What SKR's online frames are drawn as: a default build's (category power 1, no seated or
 # crossed legs, 2,048-point validation clouds); validation is drawn with its seed whatever the
-# recipe's, so that every run scores the same frames.
+# recipe's, so that every run scores the same frames. ``--online KEY=VALUE`` changes the
+# training draws' ONLINE_FIELDS (crossed legs, say), never validation's.
 ONLINE_FRAMES = BuildConfig()
+ONLINE_FIELDS = ("max_shift", "category_power", "seated_fraction", "crossed_fraction")
 
 
-def online_skr_data(pack, device):
-    """SKR's training frames drawn afresh from a data pack (``training.data.online``), and
-    VALIDATION_LIMIT validation frames drawn once from its validation split."""
-    def frames(split):
+def online_config(assignments):
+    """["crossed_fraction=0.15", ...] -> ONLINE_FRAMES with those ONLINE_FIELDS replaced;
+    ValueError naming a field that is not one, or a value that is not a number or is out of
+    its range."""
+    changes = {}
+    for assignment in assignments:
+        key, equals, value = assignment.partition("=")
+        if not equals or key not in ONLINE_FIELDS:
+            raise ValueError(f"{assignment!r}: expected KEY=VALUE with KEY one of "
+                             f"{', '.join(ONLINE_FIELDS)}")
+        try:
+            changes[key] = float(value)
+        except ValueError:
+            raise ValueError(f"{assignment!r}: {value!r} is not a number") from None
+    return dataclasses.replace(ONLINE_FRAMES, **changes)
+
+
+def online_changes(config):
+    """How ``config``'s draws differ from ONLINE_FRAMES': "" or " with crossed_fraction=0.15"."""
+    changed = [f"{k}={getattr(config, k):g}" for k in ONLINE_FIELDS
+               if getattr(config, k) != getattr(ONLINE_FRAMES, k)]
+    return f" with {', '.join(changed)}" if changed else ""
+
+
+def online_skr_data(pack, device, config=ONLINE_FRAMES):
+    """SKR's training frames drawn afresh from a data pack (``training.data.online``) as
+    ``config`` says, and VALIDATION_LIMIT validation frames drawn once from its validation
+    split as ONLINE_FRAMES says."""
+    def frames(split, config):
         return OnlineFrames(pack.motions[split], pack.bodies[split], pack.actor_hip_height,
-                            ONLINE_FRAMES, device)
-    source = frames("val")
+                            config, device)
+    source = frames("val", ONLINE_FRAMES)
     poses = source.poses(VALIDATION_LIMIT, np.random.default_rng([ONLINE_FRAMES.seed, 0]))
     generator = torch.Generator(device).manual_seed(ONLINE_FRAMES.seed)
-    return frames("train"), source.clouds(*poses, ONLINE_FRAMES.points, generator)
+    return frames("train", config), source.clouds(*poses, ONLINE_FRAMES.points, generator)
 
 
-def train_skr(recipe, data_dir, run_dir, device, resume, limit=None, model=None, pack=None):
+def train_skr(recipe, data_dir, run_dir, device, resume, limit=None, model=None, pack=None,
+              online=ONLINE_FRAMES):
     """SKR on the built frames (``skr_*.npz``), or with a data pack (``pack.load_pack``) on
-    frames drawn afresh every batch; the T-pose frames always come from ``skr_tpose_*.npz``."""
+    frames drawn afresh every batch as ``online`` (a ``BuildConfig``) says; the T-pose
+    frames always come from ``skr_tpose_*.npz``."""
     stage_recipe = recipe.skr
     if pack is None:
         train, val = (load_split(data_dir, f"skr_{s}", device) for s in ("train", "val"))
     else:
-        train, val = online_skr_data(pack, device)
+        train, val = online_skr_data(pack, device, online)
     tpose_train, tpose_val = (load_split(data_dir, f"skr_tpose_{s}", device)
                               for s in ("train", "val"))
     model = (model or SkeletonRegressor(recipe.model)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=stage_recipe.learning_rate)
-    source = "built frames" if pack is None else f"frames drawn from pack {pack.sha256}"
+    source = ("built frames" if pack is None else f"frames drawn from pack {pack.sha256}"
+              + online_changes(online))
     stage = Stage("skr", run_dir, {"skr": model}, {"skr": optimizer}, stage_recipe.steps,
                   stage_recipe.eval_every, recipe.seed, source)
     tpose_count = round(stage_recipe.tpose_fraction * stage_recipe.batch_size)
@@ -717,7 +748,7 @@ def current_commit():
         return "unknown"
 
 
-def provenance(recipe, data_dir, init=None, pack=None):
+def provenance(recipe, data_dir, init=None, pack=None, online=ONLINE_FRAMES):
     """What made these weights: recipe, data manifest summary (and the data pack SKR drew
     from, if any), commit, and the provenance of the weights training started from, if any."""
     commit = current_commit()
@@ -732,7 +763,7 @@ def provenance(recipe, data_dir, init=None, pack=None):
             "bodies": {split: len(pack.bodies[split]) for split in ("train", "val")},
             "include_broken": pack.include_broken,
             "keep_broken_ankles": pack.keep_broken_ankles,
-            "config": dataclasses.asdict(ONLINE_FRAMES)}
+            "config": dataclasses.asdict(online)}
     if init is not None:
         out["init"] = init.metadata
     return out
@@ -788,6 +819,10 @@ def main(argv=None):
                              "(python -m training.data pack) and validates on "
                              f"{VALIDATION_LIMIT:,} drawn once from its validation split; "
                              "--data still gives the T-pose frames (skr_tpose_*.npz)")
+    parser.add_argument("--online", action="append", default=[], metavar="KEY=VALUE",
+                        help="with --pack: draw SKR's training frames with this build option "
+                             f"changed ({', '.join(ONLINE_FIELDS)}; e.g. crossed_fraction=0.15), "
+                             "validation's as ever; repeatable")
     args = parser.parse_args(argv)
     pack = None
     if args.pack is not None:
@@ -795,6 +830,12 @@ def main(argv=None):
             pack = without_broken_ankles(load_pack(args.pack))   # as builds cut them
         except ValueError as error:
             parser.error(f"--pack: {error}")
+    if args.online and pack is None:
+        parser.error("--online changes the frames drawn from a pack: give --pack")
+    try:
+        online = online_config(args.online)
+    except ValueError as error:
+        parser.error(f"--online: {error}")
     if args.threads:
         torch.set_num_threads(args.threads)
     recipe = load_recipe(args.recipe, args.set)
@@ -826,7 +867,7 @@ def main(argv=None):
         return optional[name] and (name in stages or (
             init is not None and getattr(init, name) is not None
             and name not in args.scratch))
-    trainers = {"skr": lambda *a: train_skr(*a, pack=pack), "skin": train_skin,
+    trainers = {"skr": lambda *a: train_skr(*a, pack=pack, online=online), "skin": train_skin,
                 "smrm": train_smrm,
                 "refine": lambda *a: train_refine(*a, skr=models["skr"]),
                 "denoise": lambda *a: train_denoise(*a, skr=models["skr"], refine=models[
@@ -860,7 +901,7 @@ def main(argv=None):
     if finished and (stages == own or init is not None):
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
-                       metadata=provenance(recipe, args.data, init, pack),
+                       metadata=provenance(recipe, args.data, init, pack, online),
                        refine=models["refine"].cpu() if trained("refine") else None,
                        denoise=models["denoise"].cpu() if trained("denoise") else None)
         print(f"exported {path}")
