@@ -125,7 +125,7 @@ class Stage:
         self.modules, self.optimizers = modules, optimizers
         self.steps, self.eval_every = steps, eval_every
         self.recipe_steps = steps   # self.steps may be cut to fit a time budget (run)
-        self.planned = False        # whether it was
+        self.planned = False        # whether they were
         self.base_rates = {k: o.param_groups[0]["lr"] for k, o in optimizers.items()}
         self.generator = torch.Generator().manual_seed(seed)
         self.step = 0
@@ -223,7 +223,7 @@ class Stage:
             metrics = evaluate()
         clock.last_evaluation = time.perf_counter() - began
         clock.evaluating += clock.last_evaluation
-        count = max(1, (self.step - 1) % self.eval_every + 1)   # steps summed in running
+        count = (self.step - 1) % self.eval_every + 1   # steps summed in running
         row = {"step": self.step, "seconds": round(time.perf_counter() - clock.started, 1),
                **{k: v / count for k, v in self.running.items()}, **metrics}
         self.rows.append(row)
