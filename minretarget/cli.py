@@ -233,7 +233,8 @@ def _positive_int(text):
     return value
 
 
-def _positive_float(text):
+def positive_float(text):
+    """argparse type: a positive finite number (also the training command line's)."""
     value = float(text)
     if not 0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
@@ -265,7 +266,7 @@ def build_parser():
     retarget.add_argument("--format", default=DEFAULT_FORMATS,
                           help=f"comma-separated outputs among {','.join(FORMATS)} "
                           f"(default {DEFAULT_FORMATS})")
-    retarget.add_argument("--fps", type=_positive_float, default=None,
+    retarget.add_argument("--fps", type=positive_float, default=None,
                           help="source frame rate (default 30 for clouds, the header's for "
                           "BVH, which is resampled to 30)")
     retarget.add_argument("--up-axis", choices=tuple(UP_AXES), default="y",
@@ -288,7 +289,7 @@ def build_parser():
     feet.add_argument("--no-foot-lock", action="store_true",
                       help="keep SMRM's leg rotations as they come (default: a foot that "
                            "stops on the ground is held there, the leg bent to reach it)")
-    feet.add_argument("--foot-leash", type=_positive_float, default=None, metavar="METRES",
+    feet.add_argument("--foot-leash", type=positive_float, default=None, metavar="METRES",
                       help="how far a planted toe may be held from where SMRM puts it "
                            f"(default {FootLock().max_offset:g}): longer holds feet firmer "
                            "and bends the legs more; 0.1 slides about as little as the "

@@ -474,4 +474,4 @@ def test_stage_seconds_from_the_command_line(run, tmp_path, capsys):
     for bad in ("0", "-5", "nan"):
         with pytest.raises(SystemExit):
             main(["skr", "--stage-seconds", bad, "--out", str(tmp_path / "bad")] + common)
-        assert "positive number of seconds" in capsys.readouterr().err
+        assert "must be positive and finite" in capsys.readouterr().err

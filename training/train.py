@@ -40,6 +40,7 @@ import torch
 from tqdm import tqdm
 
 from minretarget.atomic import atomic_write
+from minretarget.cli import positive_float
 from minretarget.conventions import NUM_JOINTS
 from minretarget.metrics import ACCELERATION_FRAMES
 from minretarget.refine import refine_joints
@@ -125,12 +126,16 @@ class Stage:
         self.modules, self.optimizers = modules, optimizers
         self.steps, self.eval_every = steps, eval_every
         self.recipe_steps = steps   # self.steps may be cut to fit a time budget (run)
-        self.planned = False        # whether they were
         self.base_rates = {k: o.param_groups[0]["lr"] for k, o in optimizers.items()}
         self.generator = torch.Generator().manual_seed(seed)
         self.step = 0
         self.rows = []
         self.running = {}   # loss sums since the last evaluation
+
+    @property
+    def planned(self):
+        """Whether a time budget cut the schedule short of the recipe's steps."""
+        return self.steps < self.recipe_steps
 
     @property
     def checkpoint_path(self):
@@ -160,7 +165,7 @@ class Stage:
         torch.set_rng_state(state["torch_rng"])
         self.step, self.rows, self.running = state["step"], state["rows"], state["running"]
         if state.get("planned"):   # a schedule cut to a time budget goes on as cut
-            self.steps, self.planned = state["steps"], True
+            self.steps = state["steps"]
 
     def batch(self, count, size):
         return torch.randint(count, (size,), generator=self.generator)
@@ -238,7 +243,7 @@ class Stage:
         steps = fit_steps(self.step, per_step, seconds - elapsed - clock.last_evaluation,
                           self.recipe_steps)
         if steps != self.steps:
-            self.steps, self.planned = steps, True
+            self.steps = steps
             progress.total = steps
             progress.refresh()
 
@@ -769,13 +774,6 @@ def provenance(recipe, data_dir, init=None, pack=None, online=ONLINE_FRAMES):
     return out
 
 
-def positive_seconds(text):
-    seconds = float(text)
-    if not math.isfinite(seconds) or seconds <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
-    return seconds
-
-
 def stage_list(text):
     """"all" or "skr,smrm" -> the stages in training order."""
     names = STAGES if text == "all" else tuple(text.split(","))
@@ -809,7 +807,7 @@ def main(argv=None):
                              "repeatable")
     parser.add_argument("--stop-at", type=int, metavar="STEP",
                         help="stop each stage at this step, checkpointed, to --resume later")
-    parser.add_argument("--stage-seconds", type=positive_seconds, metavar="S",
+    parser.add_argument("--stage-seconds", type=positive_float, metavar="S",
                         help="train each stage for at most S seconds of wall clock (its "
                              "loop; not the data it prepares first): its steps are cut to "
                              "what fits, timed as it runs, and its learning-rate schedule "
