@@ -8,8 +8,7 @@ Files in the output folder while a run goes on (removed when it completes):
                       ``denoise_hidden``, ``source_bone_lengths``,
                       ``frames_seen``, the foot contacts' ``toe_filtered``, ``toe_anchor``,
                       ``foot_offset``, ``feet_planted``, the facing check's
-                      ``facing_reference``, ``facing_away_frames``, and the leg check's
-                      ``given_joints``); ``run``,
+                      ``facing_reference``, ``facing_away_frames``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
                       Plain arrays: it loads without pickle.
     checkpoint.track  the small per-frame arrays, one float32 record a frame, appended as
@@ -40,13 +39,12 @@ from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 9          # 2: the state holds the smoothed joints, their speed, the longest leg;
+VERSION = 8          # 2: the state holds the smoothed joints, their speed, the longest leg;
 #                      3: and the foot contacts; 4: the mean leg length, not the longest;
 #                      5: and the denoiser's (the smoothed and the denoised joints apart);
 #                      6: the denoiser's two GRU states (the skeleton's, its mirror image's);
 #                      7: the mean source bone lengths (for the rest poses), not the leg's;
-#                      8: and the facing check's reference heading and count;
-#                      9: and the source joints given last frame (the leg check's)
+#                      8: and the facing check's reference heading and count
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -129,15 +127,15 @@ def _digest(arrays):
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
-               facing_check=True, leg_check=True):
+               facing_check=True):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
     whether SKR also runs on the source's mirror images, whether its joints are refined,
     whether they are denoised, whether SMRM's prior allows for the rest poses and whether
-    a cloud's skeleton facing far from the tracked one is read again and whether legs read
-    swapped are exchanged (skeleton sources: never, so neither is recorded)."""
+    a cloud's skeleton facing far from the tracked one is read again (skeleton sources:
+    never, so not recorded)."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
@@ -152,9 +150,7 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             **({"refine": True} if refine and weights.refine is not None else {}),
             **({"denoise": True} if denoise and weights.denoise is not None else {}),
             **({"rest_pose": True} if rest_pose and weights.rest_pose is not None else {}),
-            **({"facing_check": True} if facing_check and source.kind == "points" else {}),
-            **({"leg_check": True} if leg_check and weights.legs is not None
-               and source.kind == "points" else {})}
+            **({"facing_check": True} if facing_check and source.kind == "points" else {})}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):
@@ -187,7 +183,7 @@ def load_checkpoint(out_dir, run, weights):
         raise ValueError(f"{path}: unreadable checkpoint ({error}); the output cannot be "
                          "resumed (--overwrite starts again)") from None
     # Over both records' keys: an option recorded only when on (refine, denoise, rest_pose,
-    # facing_check, leg_check) may be off.
+    # facing_check) may be off.
     differences = [f"{key} {saved.get(key)!r} then, {run.get(key)!r} now"
                    for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
     if differences:

@@ -43,16 +43,13 @@ class ModelConfig:
     # Not in the paper: the rest-pose model (minretarget.rest_pose) SMRM's analytic prior uses
     # to allow for the two bodies' rest poses.
     rest_pose: bool = False
-    # Not in the paper: a second SKR of the same sizes, trained with crossed legs, for the
-    # leg check (minretarget.legs).
-    legs: bool = False
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
         for field in ("skr_point_widths", "skr_head_widths", "skin_widths",
                       "refine_point_widths", "refine_head_widths"):
             object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
-        for flag in ("smrm_analytic_prior", "rest_pose", "legs"):
+        for flag in ("smrm_analytic_prior", "rest_pose"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
         if self.rest_pose and not self.smrm_analytic_prior:

@@ -11,7 +11,6 @@ import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
-from .legs import JUMP, _check_legs
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
@@ -43,7 +42,7 @@ class RetargetedFrame(NamedTuple):
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
                  foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
-                 denoise=True, rest_pose=True, facing_check=True, leg_check=True):
+                 denoise=True, rest_pose=True, facing_check=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -72,12 +71,7 @@ class Retargeter:
         ``facing_check``: in a stream, read a source cloud again half turned when SKR's
         skeleton of it faces far from the heading kept so far, and keep the reading that
         faces nearer (``facing``: SKR now and then reads a body backwards); False for every
-        reading as it comes (the paper's pipeline).
-        ``leg_check``: in a stream, exchange the legs of a skeleton whose legs jump where
-        exchanging them both keeps them still and agrees with the weights' second SKR
-        (``legs``: one trained with crossed legs), if they have one (``minretarget.legs``:
-        SKR reads crossed legs back on their own sides); False for every reading as it
-        comes."""
+        reading as it comes (the paper's pipeline)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
@@ -89,18 +83,16 @@ class Retargeter:
         self.denoise = bool(denoise)
         self.rest_pose = bool(rest_pose)
         self.facing_check = bool(facing_check)
-        self.leg_check = bool(leg_check)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True, denoise=True, rest_pose=True, facing_check=True,
-                     leg_check=True):
+                     refine=True, denoise=True, rest_pose=True, facing_check=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine, denoise, rest_pose, facing_check, leg_check)
+                   mirror_source, refine, denoise, rest_pose, facing_check)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -224,8 +216,8 @@ class Retargeter:
         return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
 
     def _retarget_step(self, source_joints, points=None):
-        """The facing and leg checks (given the frame's ``points``), smoothing, denoising,
-        SMRM then the foot contacts on one frame's source skeleton -> rotations, root."""
+        """The facing check (given the frame's ``points``), smoothing, denoising, SMRM then
+        the foot contacts on one frame's source skeleton -> rotations, root."""
         if self.facing_check and points is not None:
             reference, away = ((np.nan, 0) if self._state is None else
                                (self._state.facing_reference, self._state.facing_away_frames))
@@ -235,10 +227,6 @@ class Retargeter:
                 lambda clouds: self._skr(clouds, self.mirror_source), TRIGGER, CONFIRM)
         else:      # tracked all the same, so that the check can be switched on mid-stream
             reference, away = float(heading_angles(source_joints)), 0
-        if (self.leg_check and self.weights.legs is not None and points is not None
-                and self._state is not None):
-            source_joints = _check_legs(source_joints, self._state.given_joints,
-                                        lambda: regress_joints(points, self.weights.legs), JUMP)
         rotations, root, state = retarget_step(self.weights.smrm, self._state, source_joints,
                                                self.target.tpose_joints, self.smoothing,
                                                self.denoiser, self.rest_pose_model)

@@ -77,9 +77,6 @@ class MotionState(NamedTuple):
     # have faced away from it.
     facing_reference: float = float("nan")
     facing_away_frames: int = 0
-    # (J, 3) float32 the source joints given last frame, before smoothing (after the facing
-    # and leg checks), metres: the leg check (``minretarget.legs``) measures jumps from them.
-    given_joints: np.ndarray = None
 
 
 def initial_state(weights, first_joints, denoiser=None):
@@ -93,14 +90,12 @@ def initial_state(weights, first_joints, denoiser=None):
                        np.zeros_like(first_joints),
                        np.zeros(hidden_shape(denoiser), dtype=np.float32),
                        np.zeros(NUM_BONES, dtype=np.float32), 0,
-                       feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool),
-                       given_joints=first_joints.copy())
+                       feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool))
 
 
 def check_state(weights, state, denoiser=None):
     """A MotionState checked against ``weights`` and ``denoiser`` (e.g. one read back from a
-    file): hidden states of the right shapes, finite (J, 3) joints (given, seen, smoothed) and
-    velocities, a count,
+    file): hidden states of the right shapes, finite (J, 3) joints and velocities, a count,
     finite (B,) bone lengths >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags,
     a facing reference (a number, nan allowed) and a count of frames facing away.
     Returns it with C-contiguous float32 arrays; ValueError names the field."""
@@ -110,8 +105,7 @@ def check_state(weights, state, denoiser=None):
     encoder = as_float32_array(state.encoder_hidden, "state.encoder_hidden", (layers, hidden))
     decoder = as_float32_array(state.decoder_hidden, "state.decoder_hidden", (layers, hidden))
     joints = [as_float32_array(getattr(state, name), f"state.{name}", (NUM_JOINTS, 3))
-              for name in ("previous_joints", "smoothed_joints", "joint_velocity",
-                           "given_joints")]
+              for name in ("previous_joints", "smoothed_joints", "joint_velocity")]
     denoise = as_float32_array(state.denoise_hidden, "state.denoise_hidden",
                                hidden_shape(denoiser))
     lengths = as_float32_array(state.source_bone_lengths, "state.source_bone_lengths",
@@ -127,8 +121,8 @@ def check_state(weights, state, denoiser=None):
                          f"{state.facing_reference!r}") from None
     if np.isinf(reference):
         raise ValueError(f"state: facing_reference must be finite or nan, got {reference}")
-    return MotionState(encoder, decoder, *joints[:3], denoise, lengths, frames,
-                       *check_feet(state), reference, away, joints[3])
+    return MotionState(encoder, decoder, *joints, denoise, lengths, frames, *check_feet(state),
+                       reference, away)
 
 
 def _count(state, name):
@@ -196,8 +190,7 @@ def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, d
     new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
                                previous_joints=seen, smoothed_joints=smoothed,
                                joint_velocity=velocity, denoise_hidden=denoise_hidden,
-                               source_bone_lengths=lengths, frames_seen=state.frames_seen + 1,
-                               given_joints=np.array(source_joints, dtype=np.float32))
+                               source_bone_lengths=lengths, frames_seen=state.frames_seen + 1)
     return rotations, root, new_state
 
 

@@ -1,8 +1,7 @@
 """The weights file: one flat ``.npz`` holding every network, loaded without pickle.
 
 Keys are the dotted paths of the runtime's weight NamedTuples, e.g.
-``skr.regressor.point.0.weight`` or ``smrm.encoder.1.hidden_weight`` (``legs.*``: the leg
-check's second SKR, the same keys as ``skr.*``); linear weights are
+``skr.regressor.point.0.weight`` or ``smrm.encoder.1.hidden_weight``; linear weights are
 stored (in, out), the layout the kernels multiply with. Besides the arrays:
     format_version   int scalar, FORMAT_VERSION
     config           JSON string of minretarget.config.ModelConfig
@@ -47,7 +46,6 @@ class Weights(NamedTuple):
     refine: RefinerWeights = None    # the joint refiner, if the config has one
     denoise: DenoiserWeights = None  # the skeleton denoiser, if the config has one
     rest_pose: RestPoseWeights = None  # the rest-pose model, if the config has one
-    legs: SKRWeights = None          # the leg check's second SKR, if the config has one
 
 
 class _Shape(tuple):
@@ -103,8 +101,6 @@ def weight_template(config):
             Dense(_Shape((config.denoise_hidden, j * 3)), _Shape((j * 3,))))
     if config.rest_pose:
         stages["rest_pose"] = RestPoseWeights(_Shape((NUM_FEATURES, 3 * NUM_BONES)))
-    if config.legs:
-        stages["legs"] = skr
     return stages
 
 
@@ -136,7 +132,7 @@ def flatten_weights(weights):
     arrays = {"format_version": np.array(FORMAT_VERSION),
               "config": np.array(weights.config.to_json()),
               "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
-    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose", "legs"):
+    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose"):
         if getattr(weights, stage) is not None:
             arrays.update(_leaves(getattr(weights, stage), stage))
     return arrays

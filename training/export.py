@@ -4,13 +4,7 @@ Batch norm (eval statistics) is folded into the preceding linear layer, and ever
 weight is transposed to the runtime's (in, out) layout. ``import_weights`` goes the other way,
 so training can start from an exported file (the shipped weights, say): its batch norms come
 back folded, as ``nn.Identity``.
-
-    python -m training.export add-legs --weights FILE --labeler FILE --out FILE
-
-writes FILE with the labeler's SKR as the leg check's second SKR (``minretarget.legs``;
-the labeler: SKR trained with crossed legs, ``train skr --online crossed_fraction=...``).
 """
-import argparse
 import dataclasses
 import numpy as np
 import torch
@@ -21,8 +15,7 @@ from minretarget.refine import RefinerWeights
 from minretarget.rest_pose import RestPoseWeights
 from minretarget.skr import PointNetWeights, SKRWeights
 from minretarget.smrm import SMRMWeights
-from minretarget.weights import (Weights, flatten_weights, load_weights, save_weights,
-                                 weights_from_arrays)
+from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
 
 
 def _array(tensor):
@@ -106,46 +99,9 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
 
 
 def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32, refine=None,
-                   denoise=None, legs=None):
-    """Write the torch modules as one runtime weights file at ``path``; ``legs``: runtime
-    Weights whose leg check's SKR to carry over (the --init weights', say), or None."""
-    weights = runtime_weights(skr, smrm, skin, metadata, refine, denoise)
-    if legs is not None and legs.legs is not None:
-        weights = with_legs(weights, legs.legs, legs.metadata.get("legs"))
-    save_weights(path, weights, dtype=dtype)
-
-
-def with_legs(weights, labeler, provenance):
-    """Runtime Weights with ``labeler`` (SKRWeights of the same sizes as their SKR) as the leg
-    check's second SKR, its ``provenance`` recorded in the metadata under "legs"."""
-    widths = (weights.config.skr_point_widths, weights.config.skr_head_widths)
-    labeler_widths = (tuple(layer.weight.shape[1] for layer in labeler.regressor.point),
-                      tuple(layer.weight.shape[1] for layer in labeler.regressor.head.hidden))
-    if labeler_widths != widths:
-        raise ValueError(f"the labeler's SKR has widths {labeler_widths}, the weights' SKR "
-                         f"{widths}: the leg check needs the same sizes")
-    added = weights._replace(config=dataclasses.replace(weights.config, legs=True),
-                             legs=labeler, metadata={**weights.metadata, "legs": provenance})
-    return weights_from_arrays(flatten_weights(added), source="weights with a leg check")
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description="Add a leg check's SKR to a weights file.")
-    commands = parser.add_subparsers(dest="command", required=True)
-    add = commands.add_parser("add-legs", help="the labeler's SKR becomes the leg check's")
-    add.add_argument("--weights", required=True, help="the weights file to add it to")
-    add.add_argument("--labeler", required=True,
-                     help="a weights file whose SKR was trained with crossed legs")
-    add.add_argument("--out", required=True, help="the weights file to write")
-    add.add_argument("--float16", action="store_true", help="store the arrays as float16")
-    args = parser.parse_args(argv)
-    labeler = load_weights(args.labeler)
-    try:
-        weights = with_legs(load_weights(args.weights), labeler.skr, labeler.metadata)
-    except ValueError as error:
-        parser.error(str(error))
-    save_weights(args.out, weights, dtype=np.float16 if args.float16 else np.float32)
-    print(f"wrote {args.out}")
+                   denoise=None):
+    """Write the torch modules as one runtime weights file at ``path``."""
+    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine, denoise), dtype=dtype)
 
 
 
@@ -234,7 +190,3 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     if denoise is not None:
         _import_gru(denoise.gru, weights.denoise.gru)
         _set_dense(denoise.head, weights.denoise.head)
-
-
-if __name__ == "__main__":
-    main()
