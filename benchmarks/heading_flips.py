@@ -31,7 +31,6 @@ import numpy as np
 from minretarget.atomic import atomic_write
 from minretarget.conventions import JOINT_INDEX
 from minretarget.heading import heading_angles, wrapped
-from minretarget.second import legs_agree
 from minretarget.metrics import FOOT_JOINTS
 from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
@@ -41,6 +40,9 @@ from accuracy import load_sequence, weights_record  # noqa: E402
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
 TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
+# Per leg (left, right): knee, ankle, toe.
+LOWER_LEGS = np.array([[JOINT_INDEX[f"{side}_{name}"] for name in ("knee", "ankle", "foot")]
+                       for side in ("left", "right")])
 SWAP_MARGIN = 0.1    # metres, summed over the six joints, that a swapped reading must gain
 ROWS = ("SKR and refiner", "SKR alone", "SMRM's input", "SMRM's input, no facing check")
 
@@ -56,7 +58,16 @@ def legs_swapped(joints, truth, margin=SWAP_MARGIN):
     """(T,) bool: frames whose lower legs (knee, ankle, toe) are nearer the truth's, summed over
     the six joints, by more than ``margin`` metres with the left and right feet (ankle and toe)
     or whole lower legs exchanged. ``joints``, ``truth``: (T, J, 3), metres."""
-    return ~legs_agree(joints, truth, margin)
+    def distance(skeleton):
+        return np.linalg.norm(skeleton[:, LOWER_LEGS] - truth[:, LOWER_LEGS], axis=-1).sum((1, 2))
+    as_read = distance(joints)
+    best = np.full(len(joints), np.inf)
+    for exchanged in (LOWER_LEGS[:, 1:], LOWER_LEGS):
+        swapped = joints.copy()
+        swapped[:, exchanged[0]], swapped[:, exchanged[1]] = (joints[:, exchanged[1]],
+                                                              joints[:, exchanged[0]])
+        best = np.minimum(best, distance(swapped))
+    return best < as_read - margin
 
 
 def row_skeletons(weights, sequence):

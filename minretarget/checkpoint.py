@@ -127,7 +127,7 @@ def _digest(arrays):
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
-               facing_check=True, second_reading=True):
+               facing_check=True):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count and rate; its content is assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
@@ -135,7 +135,7 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
     whether SKR also runs on the source's mirror images, whether its joints are refined,
     whether they are denoised, whether SMRM's prior allows for the rest poses and whether
     a cloud's skeleton facing far from the tracked one is read again (skeleton sources:
-    never, so not recorded) and whether clouds are read by the weights' second reader too."""
+    never, so not recorded)."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             "target_sha256": _digest(target),
@@ -150,9 +150,7 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             **({"refine": True} if refine and weights.refine is not None else {}),
             **({"denoise": True} if denoise and weights.denoise is not None else {}),
             **({"rest_pose": True} if rest_pose and weights.rest_pose is not None else {}),
-            **({"facing_check": True} if facing_check and source.kind == "points" else {}),
-            **({"second_reading": True} if second_reading and weights.second is not None
-               else {})}
+            **({"facing_check": True} if facing_check and source.kind == "points" else {})}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track):
@@ -185,7 +183,7 @@ def load_checkpoint(out_dir, run, weights):
         raise ValueError(f"{path}: unreadable checkpoint ({error}); the output cannot be "
                          "resumed (--overwrite starts again)") from None
     # Over both records' keys: an option recorded only when on (refine, denoise, rest_pose,
-    # facing_check, second_reading) may be off.
+    # facing_check) may be off.
     differences = [f"{key} {saved.get(key)!r} then, {run.get(key)!r} now"
                    for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
     if differences:

@@ -5,7 +5,7 @@
                          [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
                          [--weights FILE] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
-                         [--no-facing-check] [--no-second-reading]
+                         [--no-facing-check]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
 
@@ -48,7 +48,7 @@ DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
                     mirror_source=False, refine=True, denoise=True, rest_pose=True,
-                    facing_check=True, second_reading=True):
+                    facing_check=True):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -60,7 +60,7 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
     return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
                                    foot_lock=foot_lock, mirror_source=mirror_source,
                                    refine=refine, denoise=denoise, rest_pose=rest_pose,
-                                   facing_check=facing_check, second_reading=second_reading)
+                                   facing_check=facing_check)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL):
@@ -128,7 +128,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                      mirror_source=retargeter.mirror_source, refine=retargeter.refine,
                      denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
                      facing_check=retargeter.facing_check,
-                     second_reading=retargeter.second_reading, **settings)
+                     **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
         source = open_at(start)
@@ -188,7 +188,7 @@ def _retarget(args):
     retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
                                  foot_lock, args.mirror_source, not args.no_refine,
                                  not args.no_denoise, not args.no_rest_pose,
-                                 not args.no_facing_check, not args.no_second_reading)
+                                 not args.no_facing_check)
     target_points, target_faces = read_target(args.target, space)
     set_target(retargeter, target_points, target_faces, args.target, space)
 
@@ -314,10 +314,6 @@ def build_parser():
                           help="take every SKR skeleton as it comes (default: one that faces "
                                "far from the heading kept so far is read again from the cloud "
                                "turned half round, and the reading facing nearer kept)")
-    retarget.add_argument("--no-second-reading", action="store_true",
-                          help="read every cloud with the weights' first SKR and refiner "
-                               "alone (default: with their second reader too, if they have "
-                               "one, the two averaged where they agree on the legs)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

@@ -43,21 +43,15 @@ class ModelConfig:
     # Not in the paper: the rest-pose model (minretarget.rest_pose) SMRM's analytic prior uses
     # to allow for the two bodies' rest poses.
     rest_pose: bool = False
-    # Not in the paper: a second SKR and joint refiner of the same sizes, trained with crossed
-    # legs, whose readings are combined with the first's (minretarget.second).
-    second_reading: bool = False
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
         for field in ("skr_point_widths", "skr_head_widths", "skin_widths",
                       "refine_point_widths", "refine_head_widths"):
             object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
-        for flag in ("smrm_analytic_prior", "rest_pose", "second_reading"):
+        for flag in ("smrm_analytic_prior", "rest_pose"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
-        if self.second_reading and not self.refine_point_widths:
-            raise ValueError("second_reading needs a joint refiner (refine_point_widths): the "
-                             "second reader is an SKR and a refiner")
         if self.rest_pose and not self.smrm_analytic_prior:
             raise ValueError("rest_pose needs smrm_analytic_prior: the rest-pose model moves "
                              "the analytic prior, which SMRM without it does not have")

@@ -11,7 +11,6 @@ import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
-from .second import AGREE, _combined_readings
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
@@ -43,7 +42,7 @@ class RetargetedFrame(NamedTuple):
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
                  foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
-                 denoise=True, rest_pose=True, facing_check=True, second_reading=True):
+                 denoise=True, rest_pose=True, facing_check=True):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -72,12 +71,7 @@ class Retargeter:
         ``facing_check``: in a stream, read a source cloud again half turned when SKR's
         skeleton of it faces far from the heading kept so far, and keep the reading that
         faces nearer (``facing``: SKR now and then reads a body backwards); False for every
-        reading as it comes (the paper's pipeline).
-        ``second_reading``: read every cloud (source and target) with the weights' second
-        SKR and refiner too (``second``: trained with crossed legs), if they have one, and
-        take the mean of the two readings where they agree on the legs, the first elsewhere
-        (``second``); SKR's and the refiner's time doubles. False for the first reader
-        alone (the paper's pipeline has one)."""
+        reading as it comes (the paper's pipeline)."""
         self.weights = weights
         self.warn = warn
         self.workers = workers
@@ -89,18 +83,16 @@ class Retargeter:
         self.denoise = bool(denoise)
         self.rest_pose = bool(rest_pose)
         self.facing_check = bool(facing_check)
-        self.second_reading = bool(second_reading)
         self.target = None
         self._state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True, denoise=True, rest_pose=True, facing_check=True,
-                     second_reading=True):
+                     refine=True, denoise=True, rest_pose=True, facing_check=True):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine, denoise, rest_pose, facing_check, second_reading)
+                   mirror_source, refine, denoise, rest_pose, facing_check)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -214,21 +206,14 @@ class Retargeter:
     def _skr(self, points, mirrored):
         """The skeletons of (P, 3) or (B, P, 3) clouds: SKR, then the refiner (if the weights
         have one and ``refine`` is on); with ``mirrored``, that on each cloud and on its
-        mirror image, averaged (``skr.mirror_averaged``); with ``second_reading``, the same
-        by the weights' second reader too, and the two combined (``second``)."""
-        def reader(skr, refine):
-            def skeleton(clouds):
-                joints = regress_joints(clouds, skr, self.workers)
-                if self.refine and refine is not None:
-                    joints = refine_joints(clouds, joints, refine,
-                                           self.weights.config.refine_neighbours)
-                return joints
-            return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
-        first = reader(self.weights.skr, self.weights.refine)
-        second = self.weights.second
-        if not (self.second_reading and second is not None):
-            return first
-        return _combined_readings(first, reader(second.skr, second.refine), AGREE)
+        mirror image, averaged (``skr.mirror_averaged``)."""
+        def skeleton(clouds):
+            joints = regress_joints(clouds, self.weights.skr, self.workers)
+            if self.refine and self.weights.refine is not None:
+                joints = refine_joints(clouds, joints, self.weights.refine,
+                                       self.weights.config.refine_neighbours)
+            return joints
+        return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
 
     def _retarget_step(self, source_joints, points=None):
         """The facing check (given the frame's ``points``), smoothing, denoising, SMRM then

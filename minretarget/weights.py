@@ -1,8 +1,7 @@
 """The weights file: one flat ``.npz`` holding every network, loaded without pickle.
 
 Keys are the dotted paths of the runtime's weight NamedTuples, e.g.
-``skr.regressor.point.0.weight`` or ``smrm.encoder.1.hidden_weight`` (``second.skr.*`` and
-``second.refine.*``: the second reader, the same keys as ``skr.*`` and ``refine.*``); linear weights are
+``skr.regressor.point.0.weight`` or ``smrm.encoder.1.hidden_weight``; linear weights are
 stored (in, out), the layout the kernels multiply with. Besides the arrays:
     format_version   int scalar, FORMAT_VERSION
     config           JSON string of minretarget.config.ModelConfig
@@ -30,7 +29,6 @@ from .nn import MLP, Dense, GRULayer
 from .denoise import DenoiserWeights
 from .refine import RefinerWeights
 from .rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
-from .second import SecondReader
 from .skr import PointNetWeights, SKRWeights
 from .smrm import SMRMWeights
 
@@ -48,7 +46,6 @@ class Weights(NamedTuple):
     refine: RefinerWeights = None    # the joint refiner, if the config has one
     denoise: DenoiserWeights = None  # the skeleton denoiser, if the config has one
     rest_pose: RestPoseWeights = None  # the rest-pose model, if the config has one
-    second: SecondReader = None      # the second SKR and refiner, if the config has them
 
 
 class _Shape(tuple):
@@ -98,8 +95,6 @@ def weight_template(config):
         stages["refine"] = RefinerWeights(
             _dense_chain(3, widths), _mlp_template(widths[-1] + 4 * j,
                                                    config.refine_head_widths, 3))
-    if config.second_reading:                      # the config requires the refiner
-        stages["second"] = SecondReader(skr, stages["refine"])
     if config.denoises:
         stages["denoise"] = DenoiserWeights(
             _gru_template(j * 3 + 3, config.denoise_hidden, config.denoise_layers),
@@ -137,7 +132,7 @@ def flatten_weights(weights):
     arrays = {"format_version": np.array(FORMAT_VERSION),
               "config": np.array(weights.config.to_json()),
               "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
-    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose", "second"):
+    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose"):
         if getattr(weights, stage) is not None:
             arrays.update(_leaves(getattr(weights, stage), stage))
     return arrays

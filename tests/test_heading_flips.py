@@ -7,7 +7,6 @@ import pytest
 
 from conftest import facing, turned_about_up
 from minretarget.conventions import JOINT_INDEX
-from minretarget.second import LOWER_LEGS
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import heading_flips  # noqa: E402
@@ -39,7 +38,7 @@ def test_legs_swapped_counts_exchanged_feet_and_lower_legs_in_frames_facing_righ
     4 its feet exchanged while they stand 2 cm apart (under the margin); the truth's feet are
     0.5 m apart."""
     truth = np.stack([facing(0.0, seed) for seed in range(5)])
-    left, right = LOWER_LEGS
+    left, right = heading_flips.LOWER_LEGS
     truth[:, left] = truth[:, right] + (0.5, 0.0, 0.0)
     truth[4, left] = truth[4, right] + (0.02, 0.0, 0.0)
     read = truth.copy()

@@ -4,14 +4,7 @@ Batch norm (eval statistics) is folded into the preceding linear layer, and ever
 weight is transposed to the runtime's (in, out) layout. ``import_weights`` goes the other way,
 so training can start from an exported file (the shipped weights, say): its batch norms come
 back folded, as ``nn.Identity``.
-
-    python -m training.export add-second --weights FILE --second FILE --out FILE [--float16]
-
-writes the first file with the second one's SKR and refiner as its second reader
-(``minretarget.second``; the second: SKR trained with crossed legs, ``train skr --online
-crossed_fraction=...``, then its refiner, ``train refine``).
 """
-import argparse
 import dataclasses
 import numpy as np
 import torch
@@ -22,9 +15,7 @@ from minretarget.refine import RefinerWeights
 from minretarget.rest_pose import RestPoseWeights
 from minretarget.skr import PointNetWeights, SKRWeights
 from minretarget.smrm import SMRMWeights
-from minretarget.second import SecondReader
-from minretarget.weights import (Weights, flatten_weights, load_weights, save_weights,
-                                 weights_from_arrays)
+from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
 
 
 def _array(tensor):
@@ -108,52 +99,9 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
 
 
 def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32, refine=None,
-                   denoise=None, second=None):
-    """Write the torch modules as one runtime weights file at ``path``; ``second``: runtime
-    Weights whose second reader to carry over (the --init weights', say), or None."""
-    weights = runtime_weights(skr, smrm, skin, metadata, refine, denoise)
-    if second is not None and second.second is not None:
-        weights = with_second_reader(weights, second.second, second.metadata.get("second"))
-    save_weights(path, weights, dtype=dtype)
-
-
-def with_second_reader(weights, reader, provenance):
-    """Runtime Weights with ``reader`` (a SecondReader of the same sizes as their SKR and
-    refiner) as their second reader, its ``provenance`` recorded in the metadata under
-    "second"; ValueError if the sizes differ."""
-    if weights.refine is None:
-        raise ValueError("the weights have no joint refiner: a second reader needs one")
-    added = weights._replace(config=dataclasses.replace(weights.config, second_reading=True),
-                             second=reader, metadata={**weights.metadata, "second": provenance})
-    try:
-        return weights_from_arrays(flatten_weights(added), source="the second reader")
-    except ValueError as error:
-        raise ValueError(f"{error}: the second reader needs the sizes of the weights' SKR "
-                         "and refiner") from None
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description="Add a second reader to a weights file.")
-    commands = parser.add_subparsers(dest="command", required=True)
-    add = commands.add_parser("add-second", help="the second file's SKR and refiner become "
-                                                 "the first's second reader")
-    add.add_argument("--weights", required=True, help="the weights file to add it to")
-    add.add_argument("--second", required=True,
-                     help="a weights file whose SKR (and refiner) were trained with crossed "
-                          "legs")
-    add.add_argument("--out", required=True, help="the weights file to write")
-    add.add_argument("--float16", action="store_true", help="store the arrays as float16")
-    args = parser.parse_args(argv)
-    second = load_weights(args.second)
-    if second.refine is None:
-        parser.error(f"{args.second}: has no joint refiner; a second reader needs one")
-    try:
-        weights = with_second_reader(load_weights(args.weights),
-                                     SecondReader(second.skr, second.refine), second.metadata)
-    except ValueError as error:
-        parser.error(str(error))
-    save_weights(args.out, weights, dtype=np.float16 if args.float16 else np.float32)
-    print(f"wrote {args.out}")
+                   denoise=None):
+    """Write the torch modules as one runtime weights file at ``path``."""
+    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine, denoise), dtype=dtype)
 
 
 
@@ -242,7 +190,3 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     if denoise is not None:
         _import_gru(denoise.gru, weights.denoise.gru)
         _set_dense(denoise.head, weights.denoise.head)
-
-
-if __name__ == "__main__":
-    main()

@@ -901,8 +901,7 @@ def main(argv=None):
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
                        metadata=provenance(recipe, args.data, init, pack, online),
                        refine=models["refine"].cpu() if trained("refine") else None,
-                       denoise=models["denoise"].cpu() if trained("denoise") else None,
-                       second=init)
+                       denoise=models["denoise"].cpu() if trained("denoise") else None)
         print(f"exported {path}")
 
 
