@@ -3,7 +3,7 @@
     from minretarget import Retargeter
     retargeter = Retargeter.from_weights()        # shipped default weights
     retargeter.set_target(target_points)          # (V, 3) T-pose body, metres, +Y up
-    for frame in retargeter.run(source_frames):   # each (P, 3), any P, any order
+    for frame in retargeter.run(source_frames):   # each (P, 3), any P >= 64, any order
         frame.vertices                            # (V, 3) the target, posed, in its own order
 
 See minretarget.conventions for units, axes, joint order and quaternion order.

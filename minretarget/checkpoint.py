@@ -16,6 +16,9 @@ Files in the output folder while a run goes on (removed when it completes):
                       source_joints (J, 3), canonical metres. Only the first ``frames_done``
                       records count; the writers of ``result.npz``, ``.glb`` and ``.bvh`` read
                       the motion back from here, so memory stays flat in the stream's length.
+    .previous_run/    with ``overwrite``: the files of the run that was in the folder before,
+                      kept until the run replacing them completes (``finish_run``), and put
+                      back if it fails before its first frame (``abandon_run``).
 Order of writes: a frame's files, then its record; records reach the disk (fsync) before a
 checkpoint counts them. After any interruption, Ctrl-C, kill or power loss, every frame that
 the checkpoint counts is complete on disk; a resumed run starts after it with the saved
@@ -26,6 +29,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +42,7 @@ from .smrm import MotionState, check_state
 from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
+PREVIOUS_RUN = ".previous_run"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
 VERSION = 8          # 2: the state holds the smoothed joints, their speed, the longest leg;
 #                      3: and the foot contacts; 4: the mean leg length, not the longest;
@@ -210,15 +215,17 @@ def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
     """Make ``out_dir`` ready for a run; returns (frames_done, state) to start from.
 
     A fresh run refuses a folder that holds a run's files (frames, results, a checkpoint),
-    so that nothing is lost by a repeated command: ``overwrite`` deletes them first (only
-    them; other files stay). ``resume`` continues the run of the checkpoint there
-    (``load_checkpoint``), or starts one if the folder holds none of a run's files. Either
-    way the temporaries of writes that a kill interrupted are removed.
+    so that nothing is lost by a repeated command. ``overwrite`` moves them (only them;
+    other files stay) into ``PREVIOUS_RUN`` there, until the new run completes; if that
+    folder is there already, an earlier replacement failed midway, and its files are
+    deleted instead, the run it was replacing kept. ``resume`` continues the run of the
+    checkpoint there (``load_checkpoint``), or starts one if the folder holds none of a
+    run's files. Either way the temporaries of writes that a kill interrupted are removed.
     """
     out_dir = Path(out_dir)
     previous = previous_outputs(out_dir)
     if overwrite:
-        remove_outputs(out_dir)
+        _set_aside(out_dir, previous)
     elif previous and not (resume and CHECKPOINT in previous):
         listed = ", ".join(previous[:3]) + (", ..." if len(previous) > 3 else "")
         if CHECKPOINT in previous:
@@ -231,8 +238,35 @@ def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
     return load_checkpoint(out_dir, run, weights) if resume and previous else (0, None)
 
 
-def remove_checkpoint(out_dir):
-    """Delete the checkpoint files (the run is complete)."""
+def _set_aside(out_dir, names):
+    kept = out_dir / PREVIOUS_RUN
+    if kept.is_dir():
+        remove_outputs(out_dir)
+        return
+    if names:
+        kept.mkdir()
+        for name in names:
+            os.replace(out_dir / name, kept / name)
+
+
+def _remove_checkpoint(out_dir):
     for name in (CHECKPOINT, TRACK):
         with contextlib.suppress(FileNotFoundError):
             (Path(out_dir) / name).unlink()
+
+
+def finish_run(out_dir):
+    """The run in ``out_dir`` is complete: delete its checkpoint and the run it replaced."""
+    _remove_checkpoint(out_dir)
+    shutil.rmtree(Path(out_dir) / PREVIOUS_RUN, ignore_errors=True)
+
+
+def abandon_run(out_dir):
+    """The run in ``out_dir`` failed before its first frame: delete its checkpoint (there is
+    nothing to resume) and put back the run it was replacing, if any."""
+    _remove_checkpoint(out_dir)
+    kept = Path(out_dir) / PREVIOUS_RUN
+    if kept.is_dir():
+        for path in kept.iterdir():
+            os.replace(path, Path(out_dir) / path.name)
+        kept.rmdir()

@@ -16,8 +16,10 @@ malformed file, a wrong shape or value) is reported in one line naming the file 
 exit status 1; likely mistakes (units, up axis, not a T-pose) in ``minretarget: warning:``
 lines. An interrupted ``retarget`` keeps its complete frames and a checkpoint:
 ``--resume`` finishes it with the same result as an uninterrupted run
-(``minretarget.checkpoint``). A fresh run refuses an output folder that holds another run's
-files unless ``--overwrite``; the demo replaces its own.
+(``minretarget.checkpoint``); a run that fails before its first frame leaves the folder as
+it was. A fresh run refuses an output folder that holds another run's files unless
+``--overwrite``, which keeps them aside until the new run completes; the demo replaces only
+an earlier demo's.
 """
 import argparse
 import contextlib
@@ -30,11 +32,11 @@ import warnings
 from pathlib import Path
 
 from . import __version__
-from .checkpoint import (CHECKPOINT_EVERY, TRACK, Track, prepare_out_dir, remove_checkpoint,
-                         run_record, save_checkpoint)
+from .checkpoint import (CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track, abandon_run, finish_run,
+                         prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
 from .extras import MissingExtra, require
-from .outputs import FORMATS, frame_name, open_writers, parse_formats
+from .outputs import FORMATS, frame_name, open_writers, parse_formats, previous_outputs
 from .render import render
 from .retargeter import Retargeter
 from .smoothing import Smoothing
@@ -44,6 +46,7 @@ from .validation import InputWarning, check_body
 from .weights import DEFAULT_WEIGHTS
 
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
+DEMO_MARK = ".minretarget_demo"     # in a demo's --out: the files there are a demo's
 
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
@@ -161,13 +164,17 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                 if done % CHECKPOINT_EVERY == 0:
                     save_checkpoint(out_dir, run, state, done, track)
     except BaseException:
-        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here.
+        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here; with
+        # nothing done, leave the folder as it was.
         if done > start:
             save_checkpoint(out_dir, run, state, done, track)
+        elif start == 0:
+            track.close()
+            abandon_run(out_dir)
         raise
     finally:
         track.close()
-    remove_checkpoint(out_dir)
+    finish_run(out_dir)
     return source
 
 
@@ -215,8 +222,15 @@ def _demo(args):
     source, target_points, target_faces, metadata = load_sample()
     print(f"demo: {metadata['description']}")
     out = Path(args.out)
+    # A demo replaces an earlier demo's outputs, and refuses to touch another run's.
+    previous = previous_outputs(out)
+    if previous and not (out / DEMO_MARK).is_file():
+        raise ValueError(f"{out}: holds the files of a run that is not a demo's "
+                         f"({', '.join(previous[:3])}{', ...' if len(previous) > 3 else ''}): "
+                         "choose another --out")
     set_target(retargeter, target_points, target_faces, "the sample's target")
-    # The demo's outputs are its own: a second demo replaces them.
+    out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARK).write_text("minretarget demo: a later demo may replace these files\n")
     count = retarget_to_files(retargeter, lambda first: load_sample(start=first)[0], out,
                               FORMATS, CANONICAL, {"points": None, "seed": 0},
                               overwrite=True).count
@@ -230,6 +244,13 @@ def _positive_int(text):
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+def _non_negative_int(text):
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
     return value
 
 
@@ -277,7 +298,7 @@ def build_parser():
     retarget.add_argument("--points", type=_positive_int, default=None,
                           help="resample every source cloud to N points (a random subset, "
                           "seeded)")
-    retarget.add_argument("--seed", type=int, default=0,
+    retarget.add_argument("--seed", type=_non_negative_int, default=0,
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
@@ -343,6 +364,15 @@ def _print_warning(message, category, filename, lineno, file=None, line=None):
         tqdm.write(text, file=sys.stderr)
 
 
+def _kept(args):
+    """After a failed run: where the run it was replacing (``--overwrite``) is kept."""
+    kept = Path(getattr(args, "out", None) or ".") / PREVIOUS_RUN
+    if args.command not in ("retarget", "demo") or not kept.is_dir():
+        return ""
+    return (f" (the run that was in {args.out} before is kept in {kept} until a run there "
+            "completes)")
+
+
 def main(argv=None):
     """Run the command line; returns the exit status: 0 ok, 1 bad input (or an error of the
     system, e.g. a full disk), 3 missing extra, 4 internal error, 130 interrupted (argparse
@@ -358,15 +388,16 @@ def main(argv=None):
         print(f"minretarget: {error}", file=sys.stderr)
         return 3
     except (ValueError, OSError) as error:
-        print(f"minretarget: error: {error}", file=sys.stderr)
+        print(f"minretarget: error: {error}{_kept(args)}", file=sys.stderr)
         return 1
     except MemoryError:
-        print("minretarget: error: out of memory", file=sys.stderr)
+        print(f"minretarget: error: out of memory{_kept(args)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         resumable = args.command == "retarget"
         print("minretarget: interrupted" + ("; the frames done are kept: add --resume to "
-                                            "continue" if resumable else ""), file=sys.stderr)
+                                            "continue" if resumable else "") + _kept(args),
+              file=sys.stderr)
         return 130
     except Exception as error:  # noqa: BLE001  (a bug: say so in one line, not a traceback)
         if os.environ.get("MINRETARGET_TRACEBACK") == "1":

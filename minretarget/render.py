@@ -17,16 +17,18 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_write
-from .conventions import PARENTS
+from .conventions import NUM_JOINTS, PARENTS
 from .extras import require
-from .formats.npz import ARCHIVE_ERRORS, NpzFrames
+from .formats.npz import ARCHIVE_ERRORS, NpzFrames, npz_members
 from .units import make_space, to_canonical
+from .validation import as_float32_array
 
 AZIMUTH = 40.0                 # degrees about +Y from the front view
 MAX_POINTS = 4000              # result points drawn per panel (a fixed random subset)
 STRIP_FRAMES = 6
 MAX_GIF_FRAMES = 150
 _SOURCE_COLOR, _RESULT_COLOR, _TRUTH_COLOR = "tab:blue", "tab:orange", "tab:green"
+_RESULT_KEYS = ("joints", "source_joints", "vertices", "fps", "units", "up_axis")
 
 
 def project(points, azimuth=AZIMUTH):
@@ -116,6 +118,41 @@ def _draw(axes, joints, points, color, limits, shaded, truth=None):
     axes.set_yticks([])
 
 
+def _load_result(path):
+    """A ``result.npz``'s arrays that a preview draws, checked: ({joints, source_joints (T, J,
+    3) float32, fps float, units, up_axis}, its vertices as ``NpzFrames`` (T, V, 3)).
+    ValueError naming the file and what is wrong."""
+    missing = set(_RESULT_KEYS) - set(npz_members(path))
+    if missing:
+        raise ValueError(f"{path}: not a minretarget result (missing "
+                         f"{', '.join(sorted(missing))})")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            result = {key: data[key] for key in _RESULT_KEYS if key != "vertices"}
+    except ARCHIVE_ERRORS as error:
+        raise ValueError(f"{path}: not a readable .npz ({error})") from None
+    vertices = NpzFrames(path, "vertices")
+    try:
+        for key in ("joints", "source_joints"):
+            result[key] = as_float32_array(result[key], key, (None, NUM_JOINTS, 3))
+        result["fps"] = float(result["fps"])
+        make_space(str(result["units"]), str(result["up_axis"]))
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{path}: {error}") from None
+    count = len(result["joints"])
+    if count == 0:
+        raise ValueError(f"{path}: holds no frames")
+    if not 0 < result["fps"] < math.inf:
+        raise ValueError(f"{path}: fps must be positive and finite, got {result['fps']}")
+    lengths = {"source_joints": len(result["source_joints"]), "vertices": len(vertices)}
+    if (len(vertices.shape) != 3 or vertices.shape[2] != 3
+            or any(length != count for length in lengths.values())):
+        raise ValueError(f"{path}: joints {result['joints'].shape}, source_joints "
+                         f"{result['source_joints'].shape} and vertices {vertices.shape} "
+                         "must be (T, 22, 3), (T, 22, 3) and (T, V, 3) with one T")
+    return result, vertices
+
+
 def render(result_path, out_path, source_points=None, truth_joints=None, title=None):
     """Draw a preview of ``result.npz`` into a ``.png`` strip or a ``.gif`` animation.
 
@@ -138,25 +175,13 @@ def render(result_path, out_path, source_points=None, truth_joints=None, title=N
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    try:
-        with np.load(result_path, allow_pickle=False) as data:
-            missing = {"joints", "source_joints", "vertices", "fps", "units",
-                       "up_axis"} - set(data)
-            result = {key: data[key] for key in ("joints", "source_joints", "fps", "units",
-                                                 "up_axis") if key not in missing}
-    except ARCHIVE_ERRORS as error:
-        raise ValueError(f"{result_path}: not a readable .npz ({error})") from None
-    if missing:
-        raise ValueError(f"{result_path}: not a minretarget result (missing "
-                         f"{', '.join(sorted(missing))})")
+    result, vertices = _load_result(result_path)
     count = len(result["joints"])
-    if count == 0:
-        raise ValueError(f"{result_path}: holds no frames")
-    frames = _collect(result, NpzFrames(result_path, "vertices"), source_points,
-                      _selected_frames(count, suffix), truth_joints)
+    frames = _collect(result, vertices, source_points, _selected_frames(count, suffix),
+                      truth_joints)
     source_limits = _limits(frames, "source_joints", "source_points")
     result_limits = _limits(frames, "joints", "vertices")
-    fps = float(result["fps"])
+    fps = result["fps"]
 
     def panel(axes, frame, which):
         if which == "source":

@@ -2,7 +2,7 @@
 
     retargeter = Retargeter.from_weights()            # the shipped default weights
     retargeter.set_target(target_points)              # (V, 3) T-pose: skeleton + skinning, once
-    for points in frames:                             # (P, 3) each, any P, any order
+    for points in frames:                             # (P, 3) each, any P >= 64, any order
         frame = retargeter.step(points)               # frame.vertices (V, 3) in target order
 """
 from typing import NamedTuple
@@ -19,7 +19,7 @@ from .skin import linear_blend_skinning, skinning_weights
 from .skr import mirror_averaged, regress_joints
 from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
-from .validation import as_float32_array, as_point_cloud, check_body
+from .validation import as_float32_array, as_point_cloud, as_workers, check_body
 from .weights import load_weights
 
 
@@ -74,7 +74,7 @@ class Retargeter:
         reading as it comes (the paper's pipeline)."""
         self.weights = weights
         self.warn = warn
-        self.workers = workers
+        self.workers = as_workers(workers)
         self.smoothing = check_smoothing(smoothing)
         self.foot_lock = check_foot_lock(foot_lock)
         self.mirror_target = bool(mirror_target)
@@ -114,7 +114,8 @@ class Retargeter:
                                  f"{faces.dtype}")
             if faces.size and (faces.min() < 0 or faces.max() >= len(points)):
                 raise ValueError(f"faces index vertices outside [0, {len(points)})")
-            faces = faces.astype(np.int64)
+            # No triangles is a point cloud, as the file readers give it.
+            faces = faces.astype(np.int64) if len(faces) else None
         if tpose_joints is None:
             tpose_joints = self._skr(points, self.mirror_target)
         tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))

@@ -15,7 +15,7 @@ import numpy as np
 from ._jit import kernel
 from .conventions import LEFT_AXIS, MIN_POINTS, MIRROR
 from .nn import MLP, dense, mlp
-from .validation import as_float32_array
+from .validation import as_float32_array, as_workers
 
 
 class PointNetWeights(NamedTuple):
@@ -50,6 +50,7 @@ def regress_joints(points, weights, workers=1):
     if points.shape[-2] < MIN_POINTS:
         raise ValueError(f"points has {points.shape[-2]} points per cloud; at least "
                          f"{MIN_POINTS} are needed")
+    workers = as_workers(workers)
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
     if workers > 1 and len(batch) > 1:   # whole clouds side by side: no meeting points
         joints = list(_thread_pool(workers).map(

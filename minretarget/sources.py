@@ -25,9 +25,10 @@ import numpy as np
 from .bvh import read_bvh, resample
 from .conventions import FPS
 from .formats.mesh import POINT_SUFFIXES, read_points
-from .formats.npz import ARCHIVE_ERRORS, NpzFrames, load_npy
+from .formats.npz import NpzFrames, load_npy, npz_members
 from .skeletons import canonical_world
 from .units import to_canonical
+from .validation import as_float32_array
 
 SAMPLE = Path(__file__).parent / "data" / "sample.npz"
 _NPZ_KEYS = ("points", "source_points")
@@ -90,6 +91,8 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
             raise ValueError(f"{path}: --points applies to point-cloud sources, not to BVH")
         return _bvh_source(path, space, fps, start)
     files = None
+    if not path.exists():
+        raise ValueError(f"{path}: no such file or folder")
     if path.is_dir():
         files = tuple(frame_files(path))
         if not files:
@@ -100,11 +103,7 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
         if name.endswith(".npy"):
             array = load_npy(path, mmap_mode="r")       # frames are read as they are used
         else:
-            try:
-                key = _npz_key(path)
-            except ARCHIVE_ERRORS as error:
-                raise ValueError(f"{path}: cannot read an array of frames: {error}") from None
-            array = NpzFrames(path, key)
+            array = NpzFrames(path, _npz_key(path))
         _check_frames(path, array.shape, array.dtype)
         raw = array[start:] if isinstance(array, np.ndarray) else array.frames(start)
         count = len(array)
@@ -114,21 +113,26 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
 
     def frames():
         for index, cloud in enumerate(raw, start):
-            rng = np.random.default_rng([seed, index])
-            yield to_canonical(_subsample(np.asarray(cloud), points, rng), space)
+            cloud = _subsample(np.asarray(cloud), points, np.random.default_rng([seed, index]))
+            if files is None:       # an array's frames; a folder's files are checked on reading
+                try:                # before the units' product spreads an inf over its row
+                    cloud = as_float32_array(cloud, "source points", (None, 3))
+                except ValueError as error:
+                    raise ValueError(f"{path}: frame {index}: {error}") from None
+            yield to_canonical(cloud, space)
 
     return Source(str(path), "points", count, float(fps or FPS), frames(), files)
 
 
 def _npz_key(path):
-    with np.load(path, allow_pickle=False) as data:
-        keys = data.files
+    keys = npz_members(path)
     if len(keys) == 1:
         return keys[0]
     for key in _NPZ_KEYS:
         if key in keys:
             return key
-    raise ValueError(f"it holds {', '.join(keys)}; expected one array, or one named "
+    raise ValueError(f"{path}: cannot read an array of frames: it holds "
+                     f"{', '.join(keys) or 'no array'}; expected one array, or one named "
                      f"{' or '.join(_NPZ_KEYS)}")
 
 

@@ -44,12 +44,32 @@ def as_float32_array(value, name, shape, finite=True):
     return array
 
 
+# Metres from the origin past which float32 cannot place a body's points to about a
+# millimetre (its spacing there is 1 mm; SKR's joints move 5 mm at 9 km).
+MAX_COORDINATE = 1e4
+
+
 def as_point_cloud(value, name, min_points):
-    """(P, 3) points -> float32 C-contiguous array, refusing clouds under ``min_points``."""
+    """(P, 3) points, metres -> float32 C-contiguous array, refusing clouds under
+    ``min_points`` and coordinates beyond ``MAX_COORDINATE``."""
     points = as_float32_array(value, name, (None, 3))
     if points.shape[0] < min_points:
         raise ValueError(f"{name} has {points.shape[0]} points; at least {min_points} are needed")
+    far = np.abs(points) > MAX_COORDINATE
+    if far.any():
+        bad = tuple(int(i) for i in np.argwhere(far)[0])
+        raise ValueError(f"{name} has a coordinate {points[bad]:.6g} at index {bad}, over "
+                         f"{MAX_COORDINATE:g} m from the origin, where float32 cannot hold a "
+                         "body to a millimetre: move the cloud near the origin (or check its "
+                         "units)")
     return points
+
+
+def as_workers(value):
+    """A thread count: a positive int (bools and floats refused); ValueError otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"workers must be a positive integer, got {value!r}")
+    return int(value)
 
 
 # ----------------------------------------------------------------------------- likely mistakes

@@ -302,6 +302,35 @@ def test_render_png_and_gif(folder_run, capsys):
     assert "drew 6 frames" in capsys.readouterr().out
 
 
+def test_render_refuses_a_malformed_result(folder_run, tmp_path, capsys):
+    with np.load(folder_run / "result.npz", allow_pickle=False) as data:
+        good = {key: data[key] for key in data.files}
+    cases = {"fps": (dict(fps=np.array(0.0)), "fps must be positive and finite, got 0.0"),
+             "flat": (dict(joints=good["joints"][..., :2]),
+                      r"joints must have shape (any, 22, 3), got (6, 22, 2)"),
+             "short": (dict(joints=good["joints"][:3]), "with one T"),
+             "units": (dict(units=np.array("furlong")), "units must be one of m, cm, mm")}
+    for name, (change, message) in cases.items():
+        np.savez(tmp_path / f"{name}.npz", **{**good, **change})
+        assert run("render", tmp_path / f"{name}.npz", "--out", tmp_path / "x.png") == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"minretarget: error: {tmp_path / name}.npz: ") and message in err
+        assert err.count("\n") == 1, err
+    (tmp_path / "text.npz").write_text("not an archive")
+    assert run("render", tmp_path / "text.npz", "--out", tmp_path / "x.png") == 1
+    assert "not a readable .npz (File is not a zip file)" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_negative_seed_is_refused_by_name(inputs, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+            tmp_path / "o", "--seed", "-1")
+    assert exit_.value.code == 2
+    assert "argument --seed: must be 0 or more, got -1" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.fixture
 def tiny_sample(inputs, tmp_path, monkeypatch):
     """The demo on a 4-frame sample of the shipped sample's layout."""
@@ -318,8 +347,23 @@ def test_demo_writes_every_output_and_a_preview(tiny_sample, tmp_path, capsys):
     assert run("demo", "--out", out, "--weights", WEIGHTS) == 0
     names = {p.name for p in out.iterdir()}
     assert {"result.npz", "result.glb", "result.bvh", "preview.png", "frame_000003.ply",
-            "frame_000003.obj"} <= names and len(names) == 4 * 2 + 4
+            "frame_000003.obj", cli.DEMO_MARK} <= names and len(names) == 4 * 2 + 5
     assert "demo: tiny" in capsys.readouterr().out
+
+
+def test_demo_replaces_a_demo_only(tiny_sample, tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert run("demo", "--out", out, "--weights", WEIGHTS) == 0
+    first = (out / "result.npz").read_bytes()
+    assert run("demo", "--out", out, "--weights", WEIGHTS) == 0       # its own: replaced
+    assert (out / "result.npz").read_bytes() == first
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "result.npz").write_bytes(b"a user's result")
+    assert run("demo", "--out", other, "--weights", WEIGHTS) == 1
+    assert "holds the files of a run that is not a demo's (result.npz)" in capsys.readouterr().err
+    assert [p.name for p in other.iterdir()] == ["result.npz"]
+    assert (other / "result.npz").read_bytes() == b"a user's result"
 
 
 def test_demo_without_default_weights_says_what_to_do(tiny_sample, tmp_path, monkeypatch,
@@ -353,7 +397,7 @@ def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
               "flat.npy: target"),
              (["retarget", tmp_path / "flat.npy", inputs["dir"] / "target.ply"], "flat.npy"),
              (["retarget", tmp_path / "broken.npz", inputs["dir"] / "target.ply"],
-              "broken.npz: cannot read"),
+              "broken.npz: not a readable .npz"),
              (["retarget", tmp_path / "two.npz", inputs["dir"] / "target.ply"],
               "holds a, b; expected one array"),
              (["retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",

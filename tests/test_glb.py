@@ -188,12 +188,13 @@ def test_trimesh_loads_it(written):
 
 def test_point_cloud_target_and_bad_input(tmp_path):
     points, _, weights, tpose, rotations, root = rigged_target(frames=2)
-    (tmp_path / "cloud.glb").write_bytes(glb_bytes(points, None, weights, tpose, rotations,
-                                                   root, fps=25))
-    gltf, _ = read_glb(tmp_path / "cloud.glb")
-    primitive = gltf["meshes"][0]["primitives"][0]
-    assert primitive["mode"] == 0 and "indices" not in primitive
-    assert "NORMAL" not in primitive["attributes"]
+    for faces in (None, np.zeros((0, 3), int)):     # glTF has no empty index list
+        (tmp_path / "cloud.glb").write_bytes(glb_bytes(points, faces, weights, tpose,
+                                                       rotations, root, fps=25))
+        gltf, _ = read_glb(tmp_path / "cloud.glb")
+        primitive = gltf["meshes"][0]["primitives"][0]
+        assert primitive["mode"] == 0 and "indices" not in primitive
+        assert "NORMAL" not in primitive["attributes"]
     with pytest.raises(ValueError, match="at least one frame"):
         glb_bytes(points, None, weights, tpose, rotations[:0], root[:0], fps=25)
 

@@ -135,6 +135,14 @@ def test_public_functions_refuse_bad_arrays(tiny_weights):
         (forward_kinematics, (np.zeros((22, 4)), np.zeros(3), np.zeros((22, 3))),
          r"norm 0 at index \(0,\)"),
         (quaternion_to_matrix, ([[1, 0, 0, 0], [1e20, 0, 0, 0]],), r"norm 1e\+20 at index \(1,"),
+        # Past 10 km float32 cannot hold a body to a millimetre (SKR overflowed at 1e12).
+        (retargeter.step, (np.where(np.arange(300).reshape(100, 3) == 7, 1e12, 1.0),),
+         r"source points has a coordinate 1e\+12 at index \(2, 1\), over 10000 m"),
+        (retargeter.set_target, (body() - [2e4, 0, 0],), r"target points has a coordinate -1999\d\.\d+ at index \(0, 0\)"),
+        (lambda: Retargeter(tiny_weights, workers="2"), (), "workers must be a positive "
+         "integer, got '2'"),
+        (lambda: Retargeter(tiny_weights, workers=0), (), "got 0"),
+        (lambda: Retargeter(tiny_weights, workers=2.0), (), "got 2.0"),
     ]
     for function, args, message in cases:
         with warnings.catch_warnings():
@@ -209,12 +217,19 @@ def test_damaged_sources_name_the_file_and_frame(tmp_path):
     (tmp_path / "cut.bvh.gz").write_bytes(gzip.compress(bvh.encode())[:300])
     (tmp_path / "slow.bvh").write_text(bvh.replace("Frame Time: 0.03333333333333333",
                                                    "Frame Time: 1000"))
+    (tmp_path / "text.npz").write_text("hello")         # NumPy would say "pickled data"
+    infinite = frames.copy()
+    infinite[1, 7, 1] = np.inf                           # not smeared by the units' product
+    np.save(tmp_path / "inf.npy", infinite)
     (tmp_path / "folder").mkdir()
     np.save(tmp_path / "folder" / "f1.npy", frames[0])
     (tmp_path / "folder" / "f2.xyz").write_text("0 0 0\n")
     expected = {
         "cut.npy": "cut.npy: not a readable .npy",
-        "cut.npz": "cut.npz: cannot read an array of frames",
+        "cut.npz": r"cut.npz: not a readable .npz \(File is not a zip file\)",
+        "text.npz": r"text.npz: not a readable .npz \(File is not a zip file\)",
+        "inf.npy": r"inf.npy: frame 1: source points has a non-finite value inf at index \(7, 1\)",
+        "missing": "missing: no such file or folder",
         "flipped.npz": "flipped.npz: .*array 'points'",
         "complex.npy": r"complex.npy: expected an array of frames \(T, P, 3\) of numbers",
         "cut.bvh": "cut.bvh:",
@@ -222,10 +237,12 @@ def test_damaged_sources_name_the_file_and_frame(tmp_path):
         "slow.bvh": "slow.bvh: a source at 0.001 fps .* too slow to resample",
     }
     for name, message in expected.items():
-        with pytest.raises(ValueError, match=message):
-            source = open_source(tmp_path / name, CANONICAL)
-            for frame in source.frames:
-                pass
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")          # the error says it all: no warning first
+            with pytest.raises(ValueError, match=message):
+                source = open_source(tmp_path / name, make_space("cm"))
+                for frame in source.frames:
+                    pass
     retargeter = Retargeter.from_weights(WEIGHTS, warn=False)
     retargeter.set_target(body())
     source = open_source(tmp_path / "folder", CANONICAL)

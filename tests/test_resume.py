@@ -172,6 +172,48 @@ def test_output_folder_policy(inputs, tmp_path, capsys):
     assert cli.main(arguments(inputs, tmp_path / "new", "--format", "npz", "--resume")) == 0
 
 
+def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys):
+    """--overwrite keeps the folder's run aside until the new run completes: a run that
+    fails midway leaves it in .previous_run (the error says where), one that fails at its
+    first frame puts it back, and a fresh run that fails there leaves no checkpoint."""
+    frames = np.load(inputs / "frames.npy")
+    for bad in (0, 2):
+        broken = frames[:4].copy()
+        broken[bad, :, 1] = np.nan                  # whatever subset --points takes
+        np.save(tmp_path / f"nan_at_{bad}.npy", broken)
+
+    def run(out, source=None, *extra):
+        args = arguments(inputs, out, "--format", "npz,ply", *extra)
+        if source is not None:
+            args[1] = str(tmp_path / source)
+        return cli.main(args)
+
+    out = tmp_path / "out"
+    assert run(out) == 0
+    complete = files(out)
+    assert run(out, "nan_at_0.npy", "--overwrite") == 1
+    assert files(out) == complete                                    # put back, as it was
+    capsys.readouterr()
+    assert run(out, "nan_at_2.npy", "--overwrite") == 1
+    err = capsys.readouterr().err
+    assert "frame 2" in err and "is kept in" in err and ".previous_run" in err
+    assert files(out / ".previous_run") == complete
+    assert {p.name for p in out.iterdir()} == {".previous_run", CHECKPOINT, TRACK,
+                                               "frame_000000.ply", "frame_000001.ply"}
+    # A second replacement drops the failed one's frames; failing at once, it puts back
+    # the run that both were replacing.
+    assert run(out, "nan_at_0.npy", "--overwrite") == 1
+    assert files(out) == complete
+    assert run(out, "nan_at_2.npy", "--overwrite") == 1
+    assert run(out, None, "--overwrite") == 0
+    assert files(out) == complete                                    # the same run again
+
+    fresh = tmp_path / "fresh"
+    assert run(fresh, "nan_at_0.npy") == 1
+    assert not fresh.exists() or not any(fresh.iterdir())
+    assert run(fresh) == 0                                           # no checkpoint in the way
+
+
 def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):
     """The Python side of resuming: a saved MotionState set on a new Retargeter."""
     target, sources, _ = tiny_stream

@@ -85,6 +85,8 @@ def test_faces_are_checked_and_kept(tiny_weights, tiny_stream):
         retargeter.set_target(tiny_stream[0], np.array([[0, 1, 256]]))
     with pytest.raises(ValueError, match="faces must be"):
         retargeter.set_target(tiny_stream[0], np.array([[0.5, 1, 2]]))
+    retargeter.set_target(tiny_stream[0], np.zeros((0, 3), int))   # no triangles: a cloud,
+    assert retargeter.target.faces is None                        # as the file readers say
 
 
 def test_bad_input_names_the_problem(tiny_weights, retargeter, tiny_stream):

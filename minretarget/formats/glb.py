@@ -126,7 +126,7 @@ def glb_bytes(points, faces, skin_weights, tpose_joints, rotations, root, fps):
     buffer = _Buffer()
     attributes = {"POSITION": buffer.add(points, "VEC3", ARRAY_BUFFER, bounds=True)}
     primitive = {"attributes": attributes, "mode": POINTS}
-    if faces is not None:
+    if faces is not None and len(faces):     # glTF allows no empty index list: no faces, points
         faces = np.asarray(faces, dtype=np.int64)
         attributes["NORMAL"] = buffer.add(vertex_normals(points, faces), "VEC3", ARRAY_BUFFER)
         primitive["indices"] = buffer.add(faces.reshape(-1).astype(np.uint32), "SCALAR",

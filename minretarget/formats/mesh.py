@@ -77,20 +77,19 @@ def _read_trimesh(path, suffix):
             warnings.simplefilter("ignore", RuntimeWarning)
             loaded = trimesh.load(path, file_type=suffix[1:], process=False,
                                   maintain_order=True)
-        if isinstance(loaded, trimesh.Scene):
-            geometries = list(loaded.geometry.values())
-            if len(geometries) != 1:
-                raise ValueError(f"holds {len(geometries)} objects; expected one mesh or "
-                                 "point cloud")
-            loaded = geometries[0]
-        faces = getattr(loaded, "faces", None)
-        faces = None if faces is None or len(faces) == 0 else np.asarray(faces, np.int64)
-        return np.asarray(loaded.vertices), faces
+            geometries = (list(loaded.geometry.values()) if isinstance(loaded, trimesh.Scene)
+                          else [loaded])
+            read = [(np.asarray(g.vertices), getattr(g, "faces", None)) for g in geometries]
     except Exception as error:  # noqa: BLE001
         # trimesh's readers fail on damaged files with many exception types (found by
         # fuzzing: UnboundLocalError, TypeError, OverflowError, ...): one clear error instead.
-        raise ValueError(f"{path}: cannot read points: {type(error).__name__}: "
-                         f"{error}") from None
+        raise ValueError(f"{path}: cannot read points; the file looks damaged or truncated "
+                         f"({type(error).__name__}: {error})") from None
+    if len(read) != 1:
+        raise ValueError(f"{path}: holds {len(read)} objects; expected one mesh or point cloud")
+    vertices, faces = read[0]
+    faces = None if faces is None or len(faces) == 0 else np.asarray(faces, np.int64)
+    return vertices, faces
 
 
 def mesh_bytes(vertices, faces, file_type):

@@ -129,6 +129,16 @@ def load_npz(file, name=None):
         raise ValueError(f"{name}: not a readable .npz ({error})") from None
 
 
+def npz_members(path):
+    """The names of the arrays in an ``.npz``, from its zip directory alone (nothing is
+    decoded); ValueError naming the file if it is not a zip archive."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return [name[:-len(".npy")] for name in archive.namelist() if name.endswith(".npy")]
+    except ARCHIVE_ERRORS as error:
+        raise ValueError(f"{path}: not a readable .npz ({error})") from None
+
+
 class NpzFrames:
     """One (T, ...) array of an ``.npz`` file, read lazily: ``len``, ``shape``, iteration.
 
