@@ -240,31 +240,30 @@ def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
 
 def _set_aside(out_dir, names):
     kept = out_dir / PREVIOUS_RUN
-    if kept.is_dir():
-        remove_outputs(out_dir)
+    if kept.is_dir() and CHECKPOINT in names:
+        remove_outputs(out_dir)             # an unfinished replacement: keep what it replaced
         return
+    shutil.rmtree(kept, ignore_errors=True)  # left by a kill in finish_run: stale
     if names:
         kept.mkdir()
         for name in names:
             os.replace(out_dir / name, kept / name)
 
 
-def _remove_checkpoint(out_dir):
+def finish_run(out_dir):
+    """The run in ``out_dir`` is complete: delete the run it replaced, then its checkpoint
+    (in this order, so that a kill between the two leaves a resumable run)."""
+    shutil.rmtree(Path(out_dir) / PREVIOUS_RUN, ignore_errors=True)
     for name in (CHECKPOINT, TRACK):
         with contextlib.suppress(FileNotFoundError):
             (Path(out_dir) / name).unlink()
 
 
-def finish_run(out_dir):
-    """The run in ``out_dir`` is complete: delete its checkpoint and the run it replaced."""
-    _remove_checkpoint(out_dir)
-    shutil.rmtree(Path(out_dir) / PREVIOUS_RUN, ignore_errors=True)
-
-
 def abandon_run(out_dir):
-    """The run in ``out_dir`` failed before its first frame: delete its checkpoint (there is
-    nothing to resume) and put back the run it was replacing, if any."""
-    _remove_checkpoint(out_dir)
+    """The run in ``out_dir`` failed before its first frame was complete: delete its files
+    (every run file there is its: its checkpoint, a frame file written before the failure)
+    and put back the run it was replacing, if any."""
+    remove_outputs(out_dir)
     kept = Path(out_dir) / PREVIOUS_RUN
     if kept.is_dir():
         for path in kept.iterdir():

@@ -32,11 +32,12 @@ import warnings
 from pathlib import Path
 
 from . import __version__
-from .checkpoint import (CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track, abandon_run, finish_run,
+from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track, abandon_run, finish_run,
                          prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
 from .extras import MissingExtra, require
-from .outputs import FORMATS, frame_name, open_writers, parse_formats, previous_outputs
+from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
+                      previous_outputs)
 from .render import render
 from .retargeter import Retargeter
 from .smoothing import Smoothing
@@ -46,7 +47,6 @@ from .validation import InputWarning, check_body
 from .weights import DEFAULT_WEIGHTS
 
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
-DEMO_MARK = ".minretarget_demo"     # in a demo's --out: the files there are a demo's
 
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
@@ -100,7 +100,7 @@ def _stop_between_frames():
 
 
 def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, resume=False,
-                      overwrite=False, progress=True):
+                      overwrite=False, progress=True, demo=False):
     """Retarget every frame of a source onto the retargeter's target; write ``formats``.
 
     Args:
@@ -114,6 +114,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         resume: continue the interrupted run in ``out_dir``; overwrite: replace the files of
             an earlier run there (``checkpoint.prepare_out_dir``).
         progress: show a tqdm progress bar on stderr.
+        demo: mark the folder's run as a demo's (``outputs.DEMO_MARK``), which a later demo
+            may replace.
     Returns:
         the Source retargeted (its ``count`` frames are all written, resumed or not).
     """
@@ -136,6 +138,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     if start:
         source = open_at(start)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if demo:
+        (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
     retargeter.state = state
     step = retargeter.step if source.kind == "points" else retargeter.step_skeleton
     track = Track(out_dir / TRACK, start)
@@ -222,36 +226,36 @@ def _demo(args):
     source, target_points, target_faces, metadata = load_sample()
     print(f"demo: {metadata['description']}")
     out = Path(args.out)
-    # A demo replaces an earlier demo's outputs, and refuses to touch another run's.
-    previous = previous_outputs(out)
-    if previous and not (out / DEMO_MARK).is_file():
-        raise ValueError(f"{out}: holds the files of a run that is not a demo's "
-                         f"({', '.join(previous[:3])}{', ...' if len(previous) > 3 else ''}): "
-                         "choose another --out")
+    # A demo replaces an earlier demo's run (the one in the folder, and the one a failed
+    # replacement keeps aside), and refuses to touch another run's files.
+    for folder in (out, out / PREVIOUS_RUN):
+        previous = previous_outputs(folder)
+        if previous and DEMO_MARK not in previous:
+            raise ValueError(f"{folder}: holds the files of a run that is not a demo's "
+                             f"({', '.join(previous[:3])}{', ...' if len(previous) > 3 else ''}"
+                             "): choose another --out")
     set_target(retargeter, target_points, target_faces, "the sample's target")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / DEMO_MARK).write_text("minretarget demo: a later demo may replace these files\n")
     count = retarget_to_files(retargeter, lambda first: load_sample(start=first)[0], out,
                               FORMATS, CANONICAL, {"points": None, "seed": 0},
-                              overwrite=True).count
+                              overwrite=True, demo=True).count
     clouds = load_sample()[0].frames                # a fresh pass over the source clouds
     render(out / "result.npz", out / "preview.png", source_points=clouds)
     print(f"retargeted {count} frames in {time.perf_counter() - start:.1f} s; wrote "
           f"{_written(out, FORMATS, count)}, preview.png")
 
 
-def _positive_int(text):
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
-def _non_negative_int(text):
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
-    return value
+def int_at_least(minimum):
+    """argparse type: an integer >= ``minimum`` (also the data command line's)."""
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+    parse.__name__ = f"integer >= {minimum}"
+    return parse
 
 
 def positive_float(text):
@@ -295,10 +299,10 @@ def build_parser():
                           ".glb is always Y up")
     retarget.add_argument("--units", choices=tuple(UNITS), default="m",
                           help="length unit of the input and output files; .glb is always m")
-    retarget.add_argument("--points", type=_positive_int, default=None,
+    retarget.add_argument("--points", type=int_at_least(1), default=None,
                           help="resample every source cloud to N points (a random subset, "
                           "seeded)")
-    retarget.add_argument("--seed", type=_non_negative_int, default=0,
+    retarget.add_argument("--seed", type=int_at_least(0), default=0,
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
@@ -394,7 +398,8 @@ def main(argv=None):
         print(f"minretarget: error: out of memory{_kept(args)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        resumable = args.command == "retarget"
+        # A run stopped before its first frame leaves no checkpoint: nothing to resume.
+        resumable = args.command == "retarget" and (Path(args.out) / CHECKPOINT).is_file()
         print("minretarget: interrupted" + ("; the frames done are kept: add --resume to "
                                             "continue" if resumable else "") + _kept(args),
               file=sys.stderr)

@@ -49,10 +49,12 @@ def frame_name(index, suffix):
     return f"frame_{index:06d}.{suffix}"
 
 
-# The files a run writes (``checkpoint`` adds its own two), and the temporary names that
-# ``atomic_write`` gives them until they are complete.
+DEMO_MARK = ".minretarget_demo"    # in a folder whose run is a demo's, which a demo replaces
+
+# The files a run writes (``checkpoint`` adds its own two; the demo its mark), and the
+# temporary names that ``atomic_write`` gives them until they are complete.
 OUTPUT_NAME = re.compile(r"frame_\d{6,}\.(ply|obj)|result\.(npz|glb|bvh)"
-                         r"|checkpoint\.(npz|track)")
+                         r"|checkpoint\.(npz|track)|" + re.escape(DEMO_MARK))
 _TEMPORARY_NAME = re.compile(r"\.(?P<name>.+)\.[^.]+\.tmp")
 
 

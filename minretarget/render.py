@@ -145,11 +145,12 @@ def _load_result(path):
     if not 0 < result["fps"] < math.inf:
         raise ValueError(f"{path}: fps must be positive and finite, got {result['fps']}")
     lengths = {"source_joints": len(result["source_joints"]), "vertices": len(vertices)}
-    if (len(vertices.shape) != 3 or vertices.shape[2] != 3
+    if (len(vertices.shape) != 3 or vertices.shape[2] != 3 or vertices.dtype.kind not in "fiu"
             or any(length != count for length in lengths.values())):
         raise ValueError(f"{path}: joints {result['joints'].shape}, source_joints "
-                         f"{result['source_joints'].shape} and vertices {vertices.shape} "
-                         "must be (T, 22, 3), (T, 22, 3) and (T, V, 3) with one T")
+                         f"{result['source_joints'].shape} and vertices {vertices.dtype} "
+                         f"{vertices.shape} must be (T, 22, 3), (T, 22, 3) and (T, V, 3) "
+                         "numbers with one T")
     return result, vertices
 
 

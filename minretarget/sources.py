@@ -86,13 +86,13 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
     """
     path = Path(path)
     name = path.name.lower()
+    if not path.exists():
+        raise ValueError(f"{path}: no such file or folder")
     if name.endswith((".bvh", ".bvh.gz")):
         if points is not None:
             raise ValueError(f"{path}: --points applies to point-cloud sources, not to BVH")
         return _bvh_source(path, space, fps, start)
     files = None
-    if not path.exists():
-        raise ValueError(f"{path}: no such file or folder")
     if path.is_dir():
         files = tuple(frame_files(path))
         if not files:
@@ -116,7 +116,7 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
             cloud = _subsample(np.asarray(cloud), points, np.random.default_rng([seed, index]))
             if files is None:       # an array's frames; a folder's files are checked on reading
                 try:                # before the units' product spreads an inf over its row
-                    cloud = as_float32_array(cloud, "source points", (None, 3))
+                    as_float32_array(cloud, "source points", (None, 3))
                 except ValueError as error:
                     raise ValueError(f"{path}: frame {index}: {error}") from None
             yield to_canonical(cloud, space)

@@ -20,7 +20,7 @@ from minretarget import retargeter as retargeter_module
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.skeletons import depth_first_order
-from minretarget.sources import SAMPLE, load_sample
+from minretarget.sources import SAMPLE, load_sample, open_source
 from minretarget.units import (from_canonical, make_space, rotations_to_canonical,
                                to_canonical)
 from minretarget.weights import load_weights, save_weights
@@ -105,6 +105,15 @@ def test_array_sources_match_the_folder(inputs, folder_run, name):
     assert sorted(p.name for p in out.iterdir()) == ["result.npz"]
     np.testing.assert_allclose(load(out / "result.npz")["vertices"],
                                load(folder_run / "result.npz")["vertices"], atol=1e-5)
+
+
+def test_array_sources_convert_units_at_full_precision(tmp_path):
+    """A float64 array's frames are checked, not rounded, before the units' product."""
+    frames = np.random.default_rng(0).normal(size=(2, 70, 3)) * 50 + [1e3, 90, 0]     # cm
+    np.save(tmp_path / "cm.npy", frames)
+    space = make_space("cm")
+    for cloud, read in zip(frames, open_source(tmp_path / "cm.npy", space).frames):
+        np.testing.assert_array_equal(read, to_canonical(cloud, space))
 
 
 EAGER = FootLock(plant_speed=50.0, lift_speed=50.0, height_margin=10.0, max_offset=10.0)
@@ -327,7 +336,7 @@ def test_negative_seed_is_refused_by_name(inputs, tmp_path, capsys):
         run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
             tmp_path / "o", "--seed", "-1")
     assert exit_.value.code == 2
-    assert "argument --seed: must be 0 or more, got -1" in capsys.readouterr().err
+    assert "argument --seed: must be at least 0, got -1" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
@@ -351,19 +360,36 @@ def test_demo_writes_every_output_and_a_preview(tiny_sample, tmp_path, capsys):
     assert "demo: tiny" in capsys.readouterr().out
 
 
-def test_demo_replaces_a_demo_only(tiny_sample, tmp_path, capsys):
+def test_demo_replaces_a_demo_only(inputs, tiny_sample, tmp_path, capsys):
     out = tmp_path / "demo"
     assert run("demo", "--out", out, "--weights", WEIGHTS) == 0
     first = (out / "result.npz").read_bytes()
+    (out / "result.npz").write_bytes(b"spoilt")
     assert run("demo", "--out", out, "--weights", WEIGHTS) == 0       # its own: replaced
     assert (out / "result.npz").read_bytes() == first
+    assert not (out / ".previous_run").exists()
+
+    def refused(folder, holding, named=None):
+        assert run("demo", "--out", folder, "--weights", WEIGHTS) == 1
+        err = capsys.readouterr().err
+        assert f"{named or folder}: holds the files of a run that is not a demo's ({holding})" \
+            in err
+
     other = tmp_path / "other"
     other.mkdir()
     (other / "result.npz").write_bytes(b"a user's result")
-    assert run("demo", "--out", other, "--weights", WEIGHTS) == 1
-    assert "holds the files of a run that is not a demo's (result.npz)" in capsys.readouterr().err
+    refused(other, "result.npz")
     assert [p.name for p in other.iterdir()] == ["result.npz"]
     assert (other / "result.npz").read_bytes() == b"a user's result"
+    # A run that replaced a demo's is not a demo's, nor is one a failed replacement kept.
+    assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+               "--out", out, "--format", "npz", "--weights", WEIGHTS, "--overwrite") == 0
+    replaced = (out / "result.npz").read_bytes()
+    refused(out, "result.npz")
+    (out / ".previous_run").mkdir()
+    (out / "result.npz").rename(out / ".previous_run" / "result.npz")
+    refused(out, "result.npz", named=out / ".previous_run")
+    assert (out / ".previous_run" / "result.npz").read_bytes() == replaced
 
 
 def test_demo_without_default_weights_says_what_to_do(tiny_sample, tmp_path, monkeypatch,

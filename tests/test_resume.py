@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import GOLDEN
-from minretarget import Retargeter, cli
+from minretarget import Retargeter, cli, outputs
 from minretarget.checkpoint import CHECKPOINT, TRACK, Track, load_checkpoint, save_checkpoint
 from minretarget.contacts import FootLock
 from minretarget.formats.mesh import read_points, write_mesh
@@ -212,6 +212,48 @@ def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys
     assert run(fresh, "nan_at_0.npy") == 1
     assert not fresh.exists() or not any(fresh.iterdir())
     assert run(fresh) == 0                                           # no checkpoint in the way
+
+    # A kill between finish_run's two deletions leaves a complete run beside a stale
+    # .previous_run: the next replacement sets the complete one aside, not the stale one.
+    (out / ".previous_run").mkdir()
+    (out / ".previous_run" / "result.npz").write_bytes(b"stale")
+    capsys.readouterr()
+    assert run(out, "nan_at_2.npy", "--overwrite") == 1
+    assert files(out / ".previous_run") == complete
+
+
+def test_nothing_written_before_the_first_frame_fails_or_stops(inputs, tmp_path, monkeypatch,
+                                                                 capsys):
+    """A frame file written before frame 0 fails (a full disk on its second format), or a
+    Ctrl-C before it, leave the folder as it was, and no advice to --resume."""
+    out = tmp_path / "out"
+    assert cli.main(arguments(inputs, out, "--format", "npz")) == 0
+    complete = files(out)
+    writes = []
+
+    def full_disk(path, vertices, faces=None):
+        writes.append(path)
+        if len(writes) == 2:
+            raise OSError(28, "No space left on device")
+        write_mesh(path, vertices, faces)
+
+    monkeypatch.setattr(outputs, "write_mesh", full_disk)
+    for folder, extra in ((out, ["--overwrite"]), (tmp_path / "fresh", [])):
+        writes.clear()
+        assert cli.main(arguments(inputs, folder, "--format", "ply,obj", *extra)) == 1
+        assert "No space left on device" in capsys.readouterr().err
+        assert writes[0].name == "frame_000000.ply"                   # written, then removed
+        assert files(out) == complete
+        assert not (tmp_path / "fresh").exists() or not any((tmp_path / "fresh").iterdir())
+    monkeypatch.undo()
+
+    def interrupted(self, points):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(Retargeter, "step", interrupted)
+    assert cli.main(arguments(inputs, out, "--format", "npz", "--overwrite")) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "--resume" not in err
+    assert files(out) == complete
 
 
 def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):

@@ -20,6 +20,8 @@ import sys
 import time
 from pathlib import Path
 
+from minretarget.cli import int_at_least
+
 from .datasets import DATASETS, BuildConfig, build, cmu_motions, first_bodies
 
 _DEFAULTS = BuildConfig()
@@ -40,16 +42,6 @@ def _finite_float(text):
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return value
-
-
-def _positive_int(text):
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
 
 
@@ -198,7 +190,7 @@ def main(argv=None):
                                       "and bodies into one file (for a machine without them)")
     pack_parser.add_argument("--cmu", required=True, help="the CMU BVH folder")
     pack_parser.add_argument("--out", required=True, help="output .npz")
-    pack_parser.add_argument("--bodies", type=_positive_int, default=_DEFAULTS.bodies,
+    pack_parser.add_argument("--bodies", type=int_at_least(1), default=_DEFAULTS.bodies,
                              help="training bodies, with the validation bodies a build of "
                              f"that many uses (default {_DEFAULTS.bodies})")
     pack_parser.add_argument("--include-broken", action="store_true",
