@@ -77,11 +77,12 @@ def set_target(retargeter, points, faces, name, space=CANONICAL):
 
 
 @contextlib.contextmanager
-def _stop_between_frames():
-    """Within: Ctrl-C (SIGINT) ends the run after the frame in progress, not inside it, so
-    that no library on the write path can swallow the KeyboardInterrupt (trimesh catches
-    BaseException in places, and a run once went on to the end). Yields a list that is
-    non-empty once a stop is asked; a second Ctrl-C interrupts at once."""
+def stop_between_steps():
+    """Within: Ctrl-C (SIGINT) ends a loop after the step in progress (a frame; a training
+    step), not inside it, so that no library can swallow the KeyboardInterrupt (trimesh
+    catches BaseException in places, and a run once went on to the end) and the state saved
+    is a whole step's. Yields a list that is non-empty once a stop is asked; a second
+    Ctrl-C interrupts at once."""
     asked = []
     if threading.current_thread() is not threading.main_thread():   # signals: main only
         yield asked
@@ -151,7 +152,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     try:
         save_checkpoint(out_dir, run, state, start, track)
         with open_writers(out_dir, formats, retargeter.target, source.count, source.fps, space,
-                          track, past) as write, _stop_between_frames() as stop_asked:
+                          track, past) as write, stop_between_steps() as stop_asked:
             frames = tqdm(source.frames, total=source.count, initial=start, unit="frame",
                           desc="retargeting", disable=not progress, file=sys.stderr)
             for index, data in enumerate(frames, start):

@@ -507,7 +507,7 @@ def test_build_command_from_a_pack_and_its_refusals(built, cache, tmp_path, caps
     assert not (tmp_path / "refused").exists()
     truncated = (tmp_path / "pack.npz").read_bytes()[:1000]
     (tmp_path / "truncated.npz").write_bytes(truncated)
-    with pytest.raises(SystemExit, match="truncated.npz: cannot read the pack"):
+    with pytest.raises(SystemExit, match="truncated.npz: not a readable .npz"):
         main(["build", "--pack", str(tmp_path / "truncated.npz"), "--out", str(tmp_path / "x")])
     np.savez(tmp_path / "other.npz", points=np.zeros(3))
     with pytest.raises(SystemExit, match=r"other.npz: not a data pack, missing \['actor_hip"):
@@ -548,3 +548,19 @@ def test_a_pack_holds_one_mesh_topology(built, cache):
     broken = {**MOTIONS, "train": MOTIONS["train"] + [_walk("07_12", 30)]}
     with pytest.raises(ValueError, match=r"broken captures \['07_12'\].*include_broken=True"):
         pack_arrays(broken, ACTOR_HIP_HEIGHT, {"train": [first], "val": [first]}, False)
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--crossed-fraction", "3", "must be in [0, 1], got 3"),
+    ("--seated-fraction", "-0.5", "must be in [0, 1], got -0.5"),
+    ("--clip-frames", "1", "must be at least 2, got 1"),
+    ("--bodies", "0", "must be at least 1, got 0"),
+    ("--skin-points", "0", "must be at least 1, got 0"),
+    ("--seed", "-1", "must be at least 0, got -1"),
+    ("--frames", "many", "not an integer: 'many'")])
+def test_build_options_are_checked_by_name(option, value, message, tmp_path, capsys):
+    from training.data.__main__ import main
+    with pytest.raises(SystemExit):
+        main(["build", "--cmu", str(tmp_path), "--out", str(tmp_path / "x"), option, value])
+    assert f"argument {option}: {message}" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

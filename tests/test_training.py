@@ -1,5 +1,7 @@
 """The training loop end to end on tiny synthetic datasets: every stage, export, resume."""
 import json
+import os
+import signal
 import types
 
 import numpy as np
@@ -16,7 +18,7 @@ from training.losses import foot_velocity_error, rotation_distance, skin_loss  #
 from training.recipe import load_recipe  # noqa: E402
 from training.analytic import analytic_rotations  # noqa: E402
 from training.train import (fit_steps, initial_models, main, retarget_ground_truth,  # noqa: E402
-                            smoothed_skeletons, source_noise)
+                            run_command, smoothed_skeletons, source_noise)
 
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
@@ -319,6 +321,120 @@ def test_set_overrides_the_recipe_and_clips_are_cut_to_length(run, tmp_path):
     with pytest.raises(ValueError, match="JSON value"):
         load_recipe(run / "tiny.json", ["smrm.clip_frames=ten"])
     assert load_recipe("cpu", ["skr.points=1024"]).skr.points == 1024
+
+
+@pytest.mark.parametrize("override, message", [
+    ('skr.steps="5"', r"skr.steps: expected int, got '5'"),
+    ("skr.steps=5.5", "skr.steps: expected int, got 5.5"),
+    ("skr.steps=true", "skr.steps: expected int, got True"),
+    ("skr.steps=0", "skr.steps: 0 is out of range"),
+    ("skr.eval_every=0", "skr.eval_every: 0 is out of range"),
+    ("skr.learning_rate=0", "skr.learning_rate: 0 is out of range"),
+    ('skr.learning_rate="x"', "skr.learning_rate: expected float"),
+    ("skr.tpose_fraction=2", "skr.tpose_fraction: 2 is out of range"),
+    ("smrm.input_noise=-0.1", "smrm.input_noise: -0.1 is out of range"),
+    ('smrm.input_noise_bias=[0.1, "a"]', "smrm.input_noise_bias: .* is out of range"),
+    ("seed=-1", "seed: must be 0 or more, got -1"),
+    ("name=3", "name: expected str, got 3")])
+def test_recipe_values_are_checked(override, message):
+    with pytest.raises(ValueError, match=message):
+        load_recipe("cpu", [override])
+    assert load_recipe("cpu", ["skr.tpose_fraction=1", "smrm.cycle=0",
+                               "smrm.input_noise_bias=[0.01, 0]"]).smrm.cycle == 0
+
+
+def test_a_run_folder_is_continued_or_replaced_never_mixed(run, tmp_path, capsys):
+    """--out holding a run: refused without --resume or --overwrite; --resume refuses other
+    settings (more steps are fine) and a checkpoint past the recipe's steps; --overwrite
+    starts again; the command line says so in one line."""
+    out = tmp_path / "out"
+    common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--out", str(out),
+              "--threads", "1"]
+    main(["skr", "--stop-at", "3"] + common)
+    with pytest.raises(ValueError, match="holds an earlier run .*skr.pt.*--resume.*--overwrite"):
+        main(["skr"] + common)
+    for override, named in (("skr.learning_rate=0.5", "recipe.skr.learning_rate: 0.0001 then, 0.5 now"),
+                            ("seed=7", "recipe.seed: 0 then, 7 now")):
+        with pytest.raises(ValueError, match=named):
+            main(["skr", "--resume", "--set", override] + common)
+    with pytest.raises(ValueError, match="init_sha256: None then, [0-9a-f]{64} now"):
+        main(["skr", "--resume", "--init", str(run / "run" / "weights.npz")] + common)
+    main(["skr", "--resume", "--set", "skr.steps=8"] + common)          # extended
+    assert torch.load(out / "skr.pt", weights_only=True)["step"] == 8
+    with pytest.raises(SystemExit):
+        main(["skr", "--resume", "--set", "skr.steps=4"] + common)
+    assert "is at step 8, past this recipe's 4: resume with skr.steps of at least 8" \
+        in capsys.readouterr().err
+    main(["skr", "--overwrite", "--stop-at", "2"] + common)
+    assert torch.load(out / "skr.pt", weights_only=True)["step"] == 2
+    (out / "skr.pt").write_bytes(b"not a checkpoint")
+    capsys.readouterr()
+    assert run_command(["skr", "--resume"] + common) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("python -m training.train: error: ") and err.count("\n") == 1
+    assert "skr.pt: not a readable checkpoint" in err and "weights_only" not in err
+    assert run_command(["skr", "--recipe", str(tmp_path / "absent.json")] + common[2:]) == 1
+    assert "absent.json: cannot read the recipe" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--threads", "0"], "argument --threads: must be at least 1, got 0"),
+    (["--stop-at", "0"], "argument --stop-at: must be at least 1, got 0"),
+    (["--scratch", "smrm"], "--scratch: the stages not retrained come from --init"),
+    (["--device", "tpu"], "--device tpu:")])
+def test_options_are_checked_by_name(run, tmp_path, capsys, extra, message):
+    with pytest.raises(SystemExit):
+        main(["skr", "--recipe", str(run / "tiny.json"), "--data", str(run), "--out",
+              str(tmp_path / "x")] + extra)
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_all_waits_for_an_unfinished_stage(run, tmp_path):
+    """all --stop-at stops after the first unfinished stage (refine and denoise learn SKR's
+    errors); --resume then gives the uninterrupted run's weights."""
+    common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--out",
+              str(tmp_path / "split"), "--threads", "1"]
+    main(["all", "--stop-at", "4"] + common)
+    assert sorted(p.name for p in (tmp_path / "split").glob("*.pt")) == ["skr.pt"]
+    main(["all", "--resume"] + common)
+    whole, split = (np.load(path / "weights.npz") for path in (run / "run", tmp_path / "split"))
+    for key in whole.files:
+        if key != "metadata":
+            np.testing.assert_array_equal(split[key], whole[key], err_msg=key)
+
+
+def test_a_stage_stops_on_a_non_finite_loss_and_on_ctrl_c(run, tmp_path, monkeypatch,
+                                                            capsys):
+    """A NaN loss stops the stage with the last evaluated checkpoint kept; Ctrl-C stops it
+    after the step in progress, checkpointed, and --resume ends where one run would."""
+    common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--threads", "1"]
+    nan = tmp_path / "nan"
+    with pytest.raises(ValueError, match=r"skr: loss \{'loss': nan\} at step [2-6] \(too high"):
+        main(["skr", "--out", str(nan), "--init", str(run / "run" / "weights.npz"),
+              "--set", "skr.learning_rate=1e30", "--set", "skr.eval_every=1"] + common)
+    kept = torch.load(nan / "skr.pt", weights_only=True)
+    assert all(torch.isfinite(v).all() for v in kept["modules"]["skr"].values())
+
+    from training import train
+    calls, loss = [], train.skr_loss
+
+    def interrupted_at_the_third_step(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGINT)           # a Ctrl-C inside the step
+        return loss(*args)
+    monkeypatch.setattr(train, "skr_loss", interrupted_at_the_third_step)
+    out = ["--out", str(tmp_path / "stopped")]
+    assert run_command(["skr"] + out + common) == 130
+    assert "interrupted; each stage's checkpoint is kept" in capsys.readouterr().err
+    assert torch.load(tmp_path / "stopped" / "skr.pt", weights_only=True)["step"] == 3
+    monkeypatch.undo()
+    main(["skr", "--resume"] + out + common)
+    whole = torch.load(run / "run" / "skr.pt", weights_only=True)["modules"]["skr"]
+    resumed = torch.load(tmp_path / "stopped" / "skr.pt", weights_only=True)["modules"]["skr"]
+    for key, value in whole.items():
+        torch.testing.assert_close(resumed[key], value, msg=key)
 
 
 def test_source_noise_has_the_profile_it_is_given():

@@ -6,6 +6,7 @@ Unknown keys are errors, so a typo cannot silently fall back to a default.
 """
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 from minretarget.config import ModelConfig
@@ -94,6 +95,37 @@ class Recipe:
         return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
 
 
+STAGES = (SKRStage, RefineStage, DenoiseStage, SKINStage, SMRMStage)
+
+
+def _checked(value, default, where):
+    """``value`` if it has the type of the field's ``default`` (an int for a float is fine; a
+    list for a tuple, as JSON has no tuples) and, in a stage, a sensible range: counts at
+    least 1, rates above 0, weights and noise at least 0, fractions at most 1."""
+    kind = type(default)
+    numbers = (int,) if kind is int else (int, float) if kind is float else None
+    if kind is tuple and isinstance(value, list):
+        value = tuple(value)
+    if (isinstance(value, bool) and kind is not bool) or not isinstance(
+            value, numbers or kind):
+        raise ValueError(f"{where}: expected {kind.__name__}, got {value!r}")
+    return value
+
+
+def _in_range(key, value, default, where):
+    if isinstance(default, tuple):
+        bad = not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                      and math.isfinite(v) and v >= 0 for v in value)
+    elif isinstance(default, int):
+        bad = value < 1
+    else:
+        bad = (not math.isfinite(value) or value < 0 or (value <= 0 and "rate" in key)
+               or (value > 1 and ("fraction" in key or "autocorrelation" in key)))
+    if bad:
+        raise ValueError(f"{where}: {value!r} is out of range (counts at least 1, learning "
+                         "rates above 0, weights and noise at least 0, fractions at most 1)")
+
+
 def _build(cls, values, where):
     if not isinstance(values, dict):
         raise ValueError(f"{where}: expected an object, got {values!r}")
@@ -106,8 +138,12 @@ def _build(cls, values, where):
         default = fields[key].default
         if dataclasses.is_dataclass(default):
             kwargs[key] = _build(type(default), value, f"{where}.{key}")
-        else:
-            kwargs[key] = value
+            continue
+        kwargs[key] = _checked(value, default, f"{where}.{key}")
+        if cls in STAGES:
+            _in_range(key, kwargs[key], default, f"{where}.{key}")
+        elif key == "seed" and value < 0:
+            raise ValueError(f"{where}.seed: must be 0 or more, got {value}")
     return cls(**kwargs)
 
 

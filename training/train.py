@@ -2,7 +2,8 @@
 
     python -m training.train {skr,refine,denoise,skin,smrm,all} --recipe cpu --data data
                              --out runs/cpu
-                             [--resume] [--device cpu|cuda] [--threads N] [--init WEIGHTS]
+                             [--resume | --overwrite] [--device cpu|cuda] [--threads N]
+                             [--init WEIGHTS]
                              [--scratch STAGES] [--set KEY=VALUE ...] [--pack FILE]
                              [--online KEY=VALUE ...] [--stop-at STEP] [--stage-seconds S]
 
@@ -14,9 +15,15 @@ file, stages not listed keep its networks, and the export happens after any stag
 ``--scratch smrm`` retrains a stage from random initialisation while the others come from
 --init. ``--set smrm.clip_frames=10`` overrides one recipe value (ablations); the run's
 recipe.json and the weights' metadata record the recipe as run.
---resume continues each unfinished stage from its checkpoint; finished stages are skipped.
-``--stop-at STEP`` stops each stage there, to resume later; ``--stage-seconds S`` fits each
-stage's schedule to S seconds of wall clock instead (a lent GPU's few minutes).
+A folder that holds an earlier run is refused unless ``--resume`` continues it (each
+unfinished stage from its checkpoint; finished stages are skipped; the recipe and --init
+must be the ones it started with, except that stages may be given more steps) or
+``--overwrite`` deletes it first. ``--stop-at STEP`` stops each stage there, to resume
+later, and the stages after the first that stops wait for it (refine and denoise learn
+SKR's errors); ``--stage-seconds S`` fits each stage's schedule to S seconds of wall clock
+instead (a lent GPU's few minutes). Ctrl-C stops a stage after the step in progress and
+checkpoints it; a loss that is not finite stops it with its last evaluated checkpoint kept.
+From the command line bad input is one line naming it (exit status 1), not a traceback.
 ``--pack FILE`` (a data pack, ``training.data.pack``): SKR poses fresh frames for every batch
 on the training device (``training.data.online``) instead of reading ``skr_train.npz`` (for a
 long run on a GPU, which would otherwise see a build's frames over and over), drawn as a
@@ -31,6 +38,7 @@ import io
 import json
 import math
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import NamedTuple, Optional
@@ -40,13 +48,14 @@ import torch
 from tqdm import tqdm
 
 from minretarget.atomic import atomic_write
-from minretarget.cli import positive_float
+from minretarget.cli import int_at_least, positive_float, stop_between_steps
+from minretarget.formats.npz import load_npz
 from minretarget.conventions import NUM_JOINTS
 from minretarget.metrics import ACCELERATION_FRAMES
 from minretarget.refine import refine_joints
 from minretarget.skr import regress_joints
 from minretarget.smoothing import Smoothing, smooth_joints
-from minretarget.weights import load_weights
+from minretarget.weights import file_sha256, load_weights
 from training.data.datasets import BuildConfig
 from training.data.online import OnlineFrames
 from training.data.pack import load_pack, without_broken_ankles
@@ -66,16 +75,28 @@ VALIDATION_LIMIT = 2048   # validation samples per evaluation, to bound its time
 PLAN_AFTER_STEPS = 16     # steps timed before a time budget first sizes a stage's schedule
 
 
+class Split(dict):
+    """A built dataset's arrays; one it lacks is an error naming the file."""
+
+    def __init__(self, path, arrays):
+        super().__init__(arrays)
+        self.path = path
+
+    def __missing__(self, key):
+        raise ValueError(f"{self.path}: has no array {key!r} (it holds {', '.join(self)}): "
+                         "rebuild the data (python -m training.data build)")
+
+
 def load_split(data_dir, name, device):
-    """``DIR/name.npz`` -> {key: tensor on device} (no pickle)."""
+    """``DIR/name.npz`` -> {key: tensor on device} (no pickle); ValueError naming the file if
+    it is missing or damaged."""
     path = Path(data_dir) / f"{name}.npz"
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: build the data first "
-                                "(python -m training.data build --out DIR)")
-    with np.load(path, allow_pickle=False) as data:
-        return {key: torch.from_numpy(np.asarray(data[key], dtype=np.float32)
-                                      if data[key].dtype.kind == "f" else data[key]).to(device)
-                for key in data.files}
+        raise ValueError(f"{path} is missing: build the data first "
+                         "(python -m training.data build --out DIR)")
+    return Split(path, {key: torch.from_numpy(np.asarray(array, dtype=np.float32)
+                                              if array.dtype.kind == "f" else array).to(device)
+                        for key, array in load_npz(path).items()})
 
 
 def learning_rate(step, steps, base):
@@ -153,7 +174,16 @@ class Stage:
             file.write(buffer.getvalue())
 
     def load(self):
-        state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+        try:
+            state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+        except Exception as error:  # noqa: BLE001  (pickle, zip and torch errors alike)
+            raise ValueError(f"{self.checkpoint_path}: not a readable checkpoint "
+                             f"({type(error).__name__}); start the stage again with "
+                             "--overwrite") from None
+        if state["step"] > (state["steps"] if state.get("planned") else self.steps):
+            raise ResumeMismatch(f"{self.checkpoint_path} is at step {state['step']}, past "
+                                 f"this recipe's {self.steps}: resume with "
+                                 f"{self.name}.steps of at least {state['step']}")
         if "source" in state and state["source"] != self.source:  # older checkpoints lack it
             raise ResumeMismatch(f"{self.checkpoint_path} trained on {state['source']}, this "
                                  f"run on {self.source}: resume with the same data")
@@ -183,11 +213,29 @@ class Stage:
         if resume and self.checkpoint_path.exists():
             self.load()
             print(f"{self.name}: resumed at step {self.step}/{self.steps}")
+        elif resume:
+            print(f"{self.name}: no checkpoint in {self.run_dir}: starting it")
         progress = tqdm(total=self.steps, initial=self.step, desc=self.name, unit="step")
         clock = StageClock(time.perf_counter(), self.step)
         if seconds is not None and self.step < self.steps:
             self.evaluate(evaluate, clock, progress)
+        with stop_between_steps() as stop_asked:
+            self._steps(train_step, evaluate, stop_at, seconds, clock, progress, stop_asked)
+        if self.step < self.steps:
+            self.save()
+        progress.close()
+        if self.planned:
+            print(f"{self.name}: {self.steps:,} of the recipe's {self.recipe_steps:,} steps, "
+                  "to fit the time budget")
+        for module in self.modules.values():
+            module.eval()
+        return self.step == self.steps
+
+    def _steps(self, train_step, evaluate, stop_at, seconds, clock, progress, stop_asked):
         while self.step < (self.steps if stop_at is None else min(self.steps, stop_at)):
+            if stop_asked:
+                self.save()
+                raise KeyboardInterrupt
             done = self.step - clock.first
             if seconds is not None and done > 0 and (
                     (done >= PLAN_AFTER_STEPS and done & (done - 1) == 0)   # 16, 32, 64, ...
@@ -198,7 +246,13 @@ class Stage:
                     group["lr"] = learning_rate(self.step, self.steps, self.base_rates[key])
             for module in self.modules.values():
                 module.train()
-            for key, value in train_step(self).items():
+            losses = train_step(self)
+            bad = {k: v for k, v in losses.items() if not math.isfinite(v)}
+            if bad:     # the last checkpoint, before it, is kept
+                raise ValueError(f"{self.name}: loss {bad} at step {self.step + 1} (too high "
+                                 f"a learning rate?); {self.checkpoint_path} keeps the last "
+                                 "evaluated step")
+            for key, value in losses.items():
                 self.running[key] = self.running.get(key, 0.0) + value
             self.step += 1
             progress.update(1)
@@ -209,15 +263,6 @@ class Stage:
                     self.plan(clock, seconds, progress)
                 self.save()
                 self.write_log()
-        if self.step < self.steps:
-            self.save()
-        progress.close()
-        if self.planned:
-            print(f"{self.name}: {self.steps:,} of the recipe's {self.recipe_steps:,} steps, "
-                  "to fit the time budget")
-        for module in self.modules.values():
-            module.eval()
-        return self.step == self.steps
 
     def evaluate(self, evaluate, clock, progress):
         """One row of the log: the mean losses since the last one and the metrics now."""
@@ -745,12 +790,49 @@ def train_smrm(recipe, data_dir, run_dir, device, resume, limit=None, model=None
 # ----------------------------------------------------------------------------- command line
 
 def current_commit():
-    """The repository's HEAD commit, or "unknown" outside a git checkout."""
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+    """The repository's HEAD commit, with "+modified" if tracked files differ from it, or
+    "unknown" outside a git checkout."""
+    def git(*args):
+        return subprocess.run(["git", *args], capture_output=True, text=True,
                               cwd=Path(__file__).parent, check=True).stdout.strip()
+    try:
+        return git("rev-parse", "HEAD") + ("+modified" if git("status", "--porcelain",
+                                                              "--untracked-files=no") else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+RUN_FILES = tuple(f"{stage}.{kind}" for stage in STAGES for kind in ("pt", "csv", "png")) + (
+    "recipe.json", "init.json", "weights.npz")
+RESUMABLE_CHANGES = ("steps", "eval_every")   # a resumed stage may be extended
+
+
+def earlier_run(run_dir):
+    """The names of an earlier run's files in ``run_dir`` (``RUN_FILES``)."""
+    return [name for name in RUN_FILES if (Path(run_dir) / name).is_file()]
+
+
+def _flat(values, prefix=""):
+    for key, value in values.items():
+        if isinstance(value, dict):
+            yield from _flat(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def resume_differences(run_dir, settings):
+    """What ``settings`` ({"recipe": ..., "init_sha256": ...}, as ``run_settings`` gives)
+    change from the ones the run in ``run_dir`` was started with, a list of "key: then,
+    now" strings; the steps and evaluation spacing may change."""
+    then = {}
+    for name, key in (("recipe.json", "recipe"), ("init.json", "init_sha256")):
+        path = Path(run_dir) / name
+        if path.is_file():
+            then[key] = json.loads(path.read_text())
+    then, now = dict(_flat(then)), dict(_flat(settings))
+    return [f"{key}: {then.get(key)} then, {now.get(key)} now" for key in sorted(then.keys()
+            | now.keys()) if then.get(key) != now.get(key)
+            and key.rsplit(".", 1)[-1] not in RESUMABLE_CHANGES]
 
 
 def provenance(recipe, data_dir, init=None, pack=None, online=ONLINE_FRAMES):
@@ -785,7 +867,8 @@ def stage_list(text):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m training.train",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("stage", type=stage_list,
                         help="skr, refine, denoise, skin, smrm, a comma-separated list of "
                              "them, or all")
@@ -793,9 +876,16 @@ def main(argv=None):
                         help="a recipe JSON file, or the name of one in training/recipes")
     parser.add_argument("--data", default="data", help="the directory of the built datasets")
     parser.add_argument("--out", required=True, help="the run directory")
-    parser.add_argument("--resume", action="store_true", help="continue from checkpoints")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--threads", type=int, help="torch CPU threads")
+    again = parser.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the run in --out from its checkpoints, with the same "
+                            "recipe, --init and data (more steps allowed)")
+    again.add_argument("--overwrite", action="store_true",
+                       help="delete an earlier run's files in --out first (checkpoints, "
+                            "logs, weights.npz)")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                        help="cpu, cuda or cuda:N (default: cuda when there is one)")
+    parser.add_argument("--threads", type=int_at_least(1), help="torch CPU threads")
     parser.add_argument("--init", metavar="WEIGHTS",
                         help="start from an exported weights file (e.g. the shipped one) "
                              "instead of random initialisation; stages not trained keep it")
@@ -805,7 +895,7 @@ def main(argv=None):
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value (JSON), e.g. smrm.clip_frames=10; "
                              "repeatable")
-    parser.add_argument("--stop-at", type=int, metavar="STEP",
+    parser.add_argument("--stop-at", type=int_at_least(1), metavar="STEP",
                         help="stop each stage at this step, checkpointed, to --resume later")
     parser.add_argument("--stage-seconds", type=positive_float, metavar="S",
                         help="train each stage for at most S seconds of wall clock (its "
@@ -834,6 +924,13 @@ def main(argv=None):
         online = online_config(args.online)
     except ValueError as error:
         parser.error(f"--online: {error}")
+    if args.scratch and not args.init:
+        parser.error("--scratch: the stages not retrained come from --init: give it")
+    try:
+        device = torch.device(args.device)
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as error:
+        parser.error(f"--device {args.device}: {error}")
     if args.threads:
         torch.set_num_threads(args.threads)
     recipe = load_recipe(args.recipe, args.set)
@@ -848,10 +945,19 @@ def main(argv=None):
             init = init._replace(config=dataclasses.replace(init.config, rest_pose=False),
                                  rest_pose=None)
     run_dir = Path(args.out)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_write(run_dir / "recipe.json") as file:
-        file.write(recipe.to_json().encode())
-    torch.manual_seed(recipe.seed)
+    earlier = earlier_run(run_dir)
+    settings = {"recipe": json.loads(recipe.to_json()),
+                "init_sha256": file_sha256(args.init) if args.init else None}
+    if earlier and not (args.resume or args.overwrite):
+        raise ValueError(f"{run_dir}: holds an earlier run ({', '.join(earlier[:4])}"
+                         f"{', ...' if len(earlier) > 4 else ''}): add --resume to continue "
+                         "it, or --overwrite to start again")
+    if earlier and args.resume:
+        changed = resume_differences(run_dir, settings)
+        if changed:
+            raise ValueError(f"--resume: {run_dir} was started with other settings ("
+                             f"{'; '.join(changed)}): resume with the same, or start again "
+                             "with --overwrite")
     # The recipe's own stages: refine and denoise only if its model has them.
     optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}
     own = tuple(n for n in STAGES if optional.get(n, True))
@@ -885,17 +991,27 @@ def main(argv=None):
             and init.denoise is not None:
         print("warning: the refiner is retrained but not the denoiser, which learned the old "
               "refiner's errors; train refine,denoise to retrain both")
+    torch.manual_seed(recipe.seed)
     models, finished = initial_models(recipe, init, args.scratch), True
     limit = Limit(args.stop_at, args.stage_seconds)
+    if args.overwrite:
+        for name in earlier:
+            (run_dir / name).unlink()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for name, value in (("recipe.json", recipe.to_json()),
+                        ("init.json", json.dumps(settings["init_sha256"]))):
+        with atomic_write(run_dir / name) as file:
+            file.write(value.encode())
     for name in stages:
         start = time.perf_counter()
         try:
-            models[name], done = trainers[name](recipe, args.data, run_dir, args.device,
-                                                args.resume, limit, models[name])
+            models[name], finished = trainers[name](recipe, args.data, run_dir, args.device,
+                                                    args.resume, limit, models[name])
         except ResumeMismatch as error:
             parser.error(f"--resume: {error}")
-        print(f"{name}: {time.perf_counter() - start:.0f} s{'' if done else ' (stopped)'}")
-        finished = finished and done
+        print(f"{name}: {time.perf_counter() - start:.0f} s{'' if finished else ' (stopped)'}")
+        if not finished:    # the stages after it may learn from it: they wait for --resume
+            break
     if finished and (stages == own or init is not None):
         path = run_dir / "weights.npz"
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
@@ -903,7 +1019,25 @@ def main(argv=None):
                        refine=models["refine"].cpu() if trained("refine") else None,
                        denoise=models["denoise"].cpu() if trained("denoise") else None)
         print(f"exported {path}")
+    elif finished:
+        print(f"not exported: the stages not trained here ({', '.join(set(own) - set(stages))}) "
+              "have no weights; give --init WEIGHTS to carry them")
+
+
+def run_command(argv=None):
+    """``main`` for the command line: bad input is one line naming it (exit status 1), not a
+    traceback; an interrupt says what is kept (130)."""
+    try:
+        main(argv)
+    except (ValueError, OSError) as error:
+        print(f"python -m training.train: error: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("python -m training.train: interrupted; each stage's checkpoint is kept: add "
+              "--resume to continue", file=sys.stderr)
+        return 130
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_command())

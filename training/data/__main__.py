@@ -27,6 +27,13 @@ from .datasets import DATASETS, BuildConfig, build, cmu_motions, first_bodies
 _DEFAULTS = BuildConfig()
 
 
+def _fraction(text):
+    value = _finite_float(text)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
+    return value
+
+
 def _size(num_bytes):
     """Decimal units (1 MB = 10^6 bytes), as the docs quote file sizes."""
     for unit in ("B", "kB", "MB", "GB"):
@@ -158,7 +165,9 @@ def main(argv=None):
             ("skin_points", "surface points per SKIN sample"),
             ("clip_stride", "frames between the starts of consecutive SMRM clips"),
             ("clip_frames", "frames of an SMRM clip")):
-        build_parser.add_argument("--" + name.replace("_", "-"), type=int,
+        build_parser.add_argument("--" + name.replace("_", "-"),
+                                  type=int_at_least(0 if name == "seed" else
+                                                    2 if name == "clip_frames" else 1),
                                   default=getattr(_DEFAULTS, name),
                                   help=f"{help_text} (default {getattr(_DEFAULTS, name)})")
     build_parser.add_argument("--category-power", type=_finite_float,
@@ -167,12 +176,12 @@ def main(argv=None):
                                    "category's share is proportional to its frame count to "
                                    "this power (1: as the motions come; otherwise drawn with "
                                    "replacement; 0: every category alike; default 1)")
-    build_parser.add_argument("--seated-fraction", type=_finite_float,
+    build_parser.add_argument("--seated-fraction", type=_fraction,
                               default=_DEFAULTS.seated_fraction,
                               help="SKR frames (training and validation) whose legs are bent "
                                    "as if seated or crouched (datasets.seated_legs), in [0, 1] "
                                    "(default 0)")
-    build_parser.add_argument("--crossed-fraction", type=_finite_float,
+    build_parser.add_argument("--crossed-fraction", type=_fraction,
                               default=_DEFAULTS.crossed_fraction,
                               help="SKR frames (training and validation) with one leg crossed "
                                    "over the other (datasets.crossed_legs), in [0, 1] "
@@ -206,15 +215,19 @@ def main(argv=None):
                                "(the shipped one: minretarget/data/sample.npz)")
     sample_parser.add_argument("--cmu", default="../shared/data/cmu", help="the CMU BVH folder")
     sample_parser.add_argument("--trial", default="08_01", help="CMU test-split trial (a walk)")
-    sample_parser.add_argument("--points", type=int, default=2048, help="points per cloud")
-    sample_parser.add_argument("--seed", type=int, default=0, help="random seed")
+    sample_parser.add_argument("--points", type=int_at_least(64), default=2048,
+                               help="points per cloud")
+    sample_parser.add_argument("--seed", type=int_at_least(0), default=0, help="random seed")
     for sub in (build_parser, pack_parser, preview_parser, sample_parser):
         sub.add_argument("--body-cache", default=None,
                          help="body cache folder (default $MINRETARGET_CACHE/bodies or "
                               "~/.cache/minretarget/bodies)")
     args = parser.parse_args(argv)
-    {"build": _build, "pack": _pack, "preview": _preview,
-     "sample": _sample}[args.command](args)
+    try:
+        {"build": _build, "pack": _pack, "preview": _preview,
+         "sample": _sample}[args.command](args)
+    except (ValueError, OSError) as error:    # bad input: one line, not a traceback
+        sys.exit(f"{parser.prog} {args.command}: error: {error}")
 
 
 if __name__ == "__main__":

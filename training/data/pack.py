@@ -30,13 +30,12 @@ validation ones) it is 36.4 MB (34.7 MiB).
 import dataclasses
 import hashlib
 import io
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
 
 from minretarget.atomic import atomic_write
+from minretarget.formats.npz import load_npz
 from minretarget.conventions import FPS
 
 from .bodies import Body, check_one_mesh
@@ -133,11 +132,10 @@ def load_pack(path):
     path = Path(path)
     try:
         contents = path.read_bytes()          # read once: hashed, then unpacked
-        digest = hashlib.sha256(contents).hexdigest()
-        with np.load(io.BytesIO(contents), allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+    except OSError as error:
         raise ValueError(f"{path}: cannot read the pack ({error})") from None
+    digest = hashlib.sha256(contents).hexdigest()
+    arrays = load_npz(io.BytesIO(contents), name=path)
     missing = sorted(set(KEYS) - set(arrays))
     if missing:
         raise ValueError(f"{path}: not a data pack, missing {missing}")
