@@ -57,7 +57,8 @@ def train_variant(variant, args):
                        check=True)
     command = [sys.executable, "-m", "training.train", "smrm", "--recipe", args.recipe,
                "--init", str(DEFAULT_WEIGHTS), "--scratch", "smrm", "--data", str(data),
-               "--out", str(Path(args.runs) / folder), "--threads", "1"]
+               "--out", str(Path(args.runs) / folder), "--threads", "1",
+               "--resume"]      # an interrupted variant goes on; a new one starts
     for override in overrides:
         command += ["--set", override]
     print(" ".join(command), flush=True)
