@@ -390,6 +390,18 @@ def test_options_are_checked_by_name(run, tmp_path, capsys, extra, message):
     assert not (tmp_path / "x").exists()
 
 
+def test_missing_data_is_found_before_any_stage_trains(run, tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    for path in run.glob("*.npz"):
+        if not path.name.startswith("sequences_"):
+            (data / path.name).symlink_to(path)
+    with pytest.raises(ValueError, match="lacks sequences_train.npz, sequences_val.npz"):
+        main(["all", "--recipe", str(run / "tiny.json"), "--data", str(data), "--out",
+              str(tmp_path / "x")])
+    assert not (tmp_path / "x").exists()
+
+
 def test_all_waits_for_an_unfinished_stage(run, tmp_path):
     """all --stop-at stops after the first unfinished stage (refine and denoise learn SKR's
     errors); --resume then gives the uninterrupted run's weights."""

@@ -802,6 +802,20 @@ def current_commit():
         return "unknown"
 
 
+# The built datasets each stage reads from --data (``_train`` and ``_val`` of each).
+STAGE_DATA = {"skr": ("skr", "skr_tpose"), "refine": ("skr", "skr_tpose"),
+              "denoise": ("sequences",), "skin": ("skin",), "smrm": ("smrm",)}
+
+
+def missing_data(data_dir, stages, pack=None):
+    """The dataset files ``stages`` need that ``data_dir`` lacks (SKR with a pack reads only
+    the T-pose frames there), so that a long run does not die at its third stage."""
+    needed = {f"{name}_{split}.npz" for stage in stages for name in STAGE_DATA[stage]
+              if not (stage == "skr" and pack is not None and name == "skr")
+              for split in ("train", "val")}
+    return sorted(name for name in needed if not (Path(data_dir) / name).is_file())
+
+
 RUN_FILES = tuple(f"{stage}.{kind}" for stage in STAGES for kind in ("pt", "csv", "png")) + (
     "recipe.json", "init.json", "weights.npz")
 RESUMABLE_CHANGES = ("steps", "eval_every")   # a resumed stage may be extended
@@ -964,6 +978,10 @@ def main(argv=None):
     stages = tuple(n for n in args.stage if n in own)
     if pack is not None and "skr" not in stages:
         parser.error("--pack: only the skr stage draws from a pack, and it is not trained here")
+    missing = missing_data(args.data, stages, pack)
+    if missing:
+        raise ValueError(f"{args.data}: lacks {', '.join(missing)}: build the data first "
+                         "(python -m training.data build --out DIR)")
 
     def trained(name):
         """Whether the refiner or denoiser is trained here or loaded from --init: one that
