@@ -93,7 +93,7 @@ def markdown_table(rows, title):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--train", action="store_true", help="train the missing variants first")
     parser.add_argument("--runs", default="runs/ablation", help="one run folder per variant")
     parser.add_argument("--recipe", default="ablation", help="the recipe every variant shares")

@@ -1,4 +1,4 @@
-"""Accuracy of the runtime on the test benchmark (DESIGN.md, "Accuracy protocol").
+"""Accuracy of the runtime on the test benchmark (../shared/DESIGN.md, "Accuracy protocol").
 
     python benchmarks/accuracy.py [--quick | --validation | --dances] [--rows ROW ...] [--weights FILE]
                                   [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
@@ -44,7 +44,8 @@ Only when named in --rows:
 Every row but ``paper`` is averaged over frames. A second table gives foot sliding: the mean
 horizontal speed of the toes over the steps where the ground truth's toes touch the ground
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
-If DIR/test is absent, the benchmark data is built first (python -m training.data build).
+If DIR/test is absent, the run stops and says how to build it; with --build it builds it
+first (python -m training.data build --only test, about 13 minutes).
 A third compares the model with the analytic baseline, sequence by sequence (and the mirrored
 source rows likewise, ``PAIRS``): for each metric the frame-weighted difference (model minus
 analytic; below zero, the model is better), its 95 % interval from a bootstrap over the
@@ -92,6 +93,33 @@ QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
 # Paired comparisons, sequence by sequence, printed when a run has both rows.
 PAIRS = (("model", "analytic"), ("model, mirrored source", "analytic, mirrored source"))
+
+
+def command_line(main):
+    """Run a benchmark's ``main`` from the command line: bad input (a missing or damaged
+    file, a value out of range) is one line naming it, exit status 1, not a traceback."""
+    try:
+        main()
+    except (ValueError, OSError) as error:
+        sys.exit(f"{Path(sys.argv[0]).name}: error: {error}")
+
+
+def load_measured(path):
+    """The weights at ``path`` (None: the shipped ones) and their ``weights_record``, taken
+    as they are loaded, so a file replaced during a long run is not the one recorded."""
+    weights = load_weights(path)
+    return weights, weights_record(path, weights)
+
+
+def load_results(path):
+    """A saved run's JSON (``--json``), checked to be one; ValueError naming the file."""
+    try:
+        saved = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: cannot read a saved run ({error})") from None
+    if not isinstance(saved, dict) or not {"split", "per_sequence"} <= set(saved):
+        raise ValueError(f"{path}: not a saved accuracy run (no split and per_sequence)")
+    return saved
 
 
 def weights_record(path, weights):
@@ -326,7 +354,7 @@ def select_sequences(paths, quick):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     which = parser.add_mutually_exclusive_group()    # one set of sequences a run
     which.add_argument("--quick", action="store_true", help="a fixed subset, about 3 minutes")
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
@@ -351,14 +379,23 @@ def main(argv=None):
     parser.add_argument("--compare", metavar="OTHER.json",
                         help="also compare the model with the model of a saved run on the "
                              "same sequences (other weights, say), sequence by sequence")
+    parser.add_argument("--build", action="store_true",
+                        help="build DIR/test first if it is absent (about 13 minutes)")
     args = parser.parse_args(argv)
-    saved = json.loads(Path(args.from_json).read_text()) if args.from_json else None
+    if args.from_json:
+        given = [option for option, value in (
+            ("--quick", args.quick), ("--validation", args.validation),
+            ("--dances", args.dances), ("--weights", args.weights),
+            ("--rows", args.rows != list(ROWS)), ("--build", args.build)) if value]
+        if given:
+            parser.error(f"--from-json prints a saved run: {', '.join(given)} would not apply")
+    saved = load_results(args.from_json) if args.from_json else None
     split = (saved["split"] if saved else "validation" if args.validation
              else "training dances" if args.dances else "test")
     quick = saved.get("quick", False) if saved else args.quick
     other = None
     if args.compare:        # refused now, not after a run of many minutes
-        compared = json.loads(Path(args.compare).read_text())
+        compared = load_results(args.compare)
         if (compared["split"], compared.get("quick", False)) != (split, quick):
             parser.error(f"--compare: {args.compare} scored {compared['split']} sequences"
                          f"{' (quick)' if compared.get('quick') else ''}, this run "
@@ -366,6 +403,8 @@ def main(argv=None):
         other = compared["per_sequence"]
     if saved:
         summary = summarize(saved["per_sequence"], saved["split"], other, args.compare)
+        if args.compare:
+            summary["compared_with"].update(_measured(compared))
         text = summary.pop("text")
         print(text)
         if args.markdown:
@@ -374,12 +413,18 @@ def main(argv=None):
             write_text(args.json, json.dumps({**saved, **summary}, indent=2))
         return
     wanted = ["model"] + [row for row in args.rows if row != "model"]
+    weights, record = load_measured(args.weights)
     test_dir = Path(args.data) / "test"
+    build = [sys.executable, "-m", "training.data", "build", "--cmu", args.cmu, "--out",
+             args.data, "--only", "test"]
     if split == "test" and not test_dir.is_dir():
-        print(f"{test_dir} is absent: building the data first", flush=True)
-        subprocess.run([sys.executable, "-m", "training.data", "build", "--cmu", args.cmu,
-                        "--out", args.data], check=True)
-    weights = load_weights(args.weights)
+        if not args.build:
+            parser.error(f"{test_dir} is absent: build it ({' '.join(build[1:])}), or add "
+                         "--build")
+        print(f"{test_dir} is absent: building it first", flush=True)
+        subprocess.run(build, check=True)
+    if split != "test" and not Path(args.cmu).is_dir():
+        parser.error(f"--cmu {args.cmu}: no such folder (the {split} trials are read there)")
     if split != "test":
         from training.data.datasets import dance_sequences, validation_sequences
         held_out = (validation_sequences if args.validation else dance_sequences)(args.cmu)
@@ -410,6 +455,8 @@ def main(argv=None):
 
     seconds = time.perf_counter() - started
     summary = summarize(results, split, other, args.compare)
+    if args.compare:
+        summary["compared_with"].update(_measured(compared))
     text = summary.pop("text")
     total_frames = summary["frames"]
     print(text)
@@ -419,8 +466,14 @@ def main(argv=None):
         write_text(args.markdown, text + "\n")
     if args.json:
         write_text(args.json, json.dumps(
-            {**summary, "per_sequence": results, **weights_record(args.weights, weights),
+            {**summary, "per_sequence": results, **record,
              "quick": args.quick, "seconds": round(seconds, 1)}, indent=2))
+
+
+def _measured(saved):
+    """What a saved run measured: its weights file, their SHA-256 and metadata, kept with a
+    comparison so that it still says which weights it was against once the file is gone."""
+    return {key: saved.get(key) for key in ("weights", "weights_sha256", "weights_metadata")}
 
 
 def summarize(results, split, other=None, other_name=None):
@@ -461,4 +514,4 @@ def summarize(results, split, other=None, other_name=None):
 
 
 if __name__ == "__main__":
-    main()
+    command_line(main)

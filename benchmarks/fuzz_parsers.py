@@ -213,7 +213,7 @@ def mutate(data, rng):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--minutes", type=float, default=1.0)
     parser.add_argument("--findings", default="fuzz_findings", help="folder for the inputs "
                         "of findings (default fuzz_findings)")

@@ -33,10 +33,9 @@ from minretarget.conventions import JOINT_INDEX
 from minretarget.heading import heading_angles, wrapped
 from minretarget.metrics import FOOT_JOINTS
 from minretarget.retargeter import Retargeter
-from minretarget.weights import load_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import load_sequence, weights_record  # noqa: E402
+from accuracy import command_line, load_measured, load_sequence  # noqa: E402
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
 TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
@@ -109,7 +108,7 @@ def sequence_flips(rows, sequence):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--json", help="write the counts as JSON here")
@@ -119,7 +118,7 @@ def main(argv=None):
         parser.error(f"no test sequences in {Path(args.data) / 'test'}: build them with "
                      f"python -m training.data build --cmu ../shared/data/cmu --out {args.data} "
                      "--only test")
-    weights = load_weights(args.weights)
+    weights, record = load_measured(args.weights)
     started, results = time.perf_counter(), []
     for path in paths:
         sequence = load_sequence(path)
@@ -161,9 +160,9 @@ def main(argv=None):
             file.write(json.dumps({"frames": frames, "summary": summary,
                                    "truth_largest_turn_degrees": largest,
                                    "per_sequence": results, "seconds": round(seconds, 1),
-                                   **weights_record(args.weights, weights)},
+                                   **record},
                                   indent=2).encode())
 
 
 if __name__ == "__main__":
-    main()
+    command_line(main)

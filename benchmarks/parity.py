@@ -16,16 +16,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from reference_models import random_reference, random_stream  # noqa: E402
 
+from minretarget.cli import int_at_least  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
 from training.export import runtime_weights  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=60)
-    parser.add_argument("--points", type=int, default=2048)
-    parser.add_argument("--target", type=int, default=13718)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int_at_least(1), default=60)
+    parser.add_argument("--points", type=int_at_least(64), default=2048)
+    parser.add_argument("--target", type=int_at_least(64), default=13718)
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = random_reference(load_recipe("paper").model, seed=0)

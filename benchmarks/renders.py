@@ -43,15 +43,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import (CONTACT_HEIGHT, load_sequence, sequence_metrics,  # noqa: E402
-                      weights_record, write_text)
+from accuracy import (CONTACT_HEIGHT, command_line, load_measured,  # noqa: E402
+                      load_sequence, sequence_metrics, write_text)
 
 from minretarget.atomic import atomic_write  # noqa: E402
 from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, PARENTS, UP_AXIS  # noqa: E402
 from minretarget.metrics import foot_contacts, foot_sliding, foot_speeds, jitter  # noqa: E402
 from minretarget.render import render  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
-from minretarget.weights import load_weights  # noqa: E402
 
 SEQUENCES = (("08_01", "walk"), ("08_02", "walk"), ("indian_06", "dance"),
              ("indian_04", "dance"))
@@ -156,14 +155,14 @@ def table(results):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--out", default="benchmarks/results/renders", help="output folder")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    weights = load_weights(args.weights)
+    weights, record = load_measured(args.weights)
     started, results = time.perf_counter(), []
     for name, kind in SEQUENCES:
         sequence = load_sequence(Path(args.data) / "test" / f"{name}.npz")
@@ -207,9 +206,9 @@ def main(argv=None):
     write_text(out / "renders.json", json.dumps(
         {"per_sequence": results, "contact_height": CONTACT_HEIGHT,
          "knee_backward_deg": KNEE_BACKWARD_DEG, "twisted_deg": TWISTED_DEG,
-         **weights_record(args.weights, weights),
+         **record,
          "seconds": round(seconds, 1)}, indent=2))
 
 
 if __name__ == "__main__":
-    main()
+    command_line(main)

@@ -43,12 +43,11 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from accuracy import (load_sequence, run_sequence, select_sequences, sequence_metrics,
-                      weights_record, write_text)
+from accuracy import (command_line, load_measured, load_sequence, run_sequence,
+                      select_sequences, sequence_metrics, write_text)
 from minretarget.atomic import atomic_write
 from minretarget.metrics import (ACCELERATION_FRAMES, METRIC_NAMES, acceleration_error,
                                  procrustes_align)
-from minretarget.weights import load_weights
 from training.data.bodies import benchmark_bodies, posed_clouds
 
 matplotlib.use("Agg")
@@ -252,7 +251,7 @@ def plot_sweep(name, values, rows, path, marks=(), references=None):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--out", default="benchmarks/results", help="folder for the PNGs")
@@ -267,7 +266,7 @@ def main(argv=None):
                      f"leaves {fewest_kept}, and the metrics need at least "
                      f"{ACCELERATION_FRAMES} (use 6 or more)")
     started = time.perf_counter()
-    weights = load_weights(args.weights)
+    weights, record = load_measured(args.weights)
     paths, _ = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")), quick=True)
     if not paths:
         raise SystemExit(f"no test sequence in {Path(args.data) / 'test'}: build the data first")
@@ -323,8 +322,8 @@ def main(argv=None):
         write_text(args.json, json.dumps(
             {"sweeps": report, "sequences": [str(s["name"]) for s in sequences],
              "frames_per_sequence": args.frames, "stored_points": stored, "seed": args.seed,
-             **weights_record(args.weights, weights), "seconds": round(seconds, 1)}, indent=2))
+             **record, "seconds": round(seconds, 1)}, indent=2))
 
 
 if __name__ == "__main__":
-    main()
+    command_line(main)

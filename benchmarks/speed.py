@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from minretarget.cli import int_at_least
 from minretarget.denoise import denoise_joints, hidden_shape
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.refine import MAX_POINTS, refine_joints
@@ -41,10 +42,9 @@ from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.skr import regress_joints
 from minretarget.smrm import retarget_step
-from minretarget.weights import load_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import weights_record, write_text  # noqa: E402
+from accuracy import command_line, load_measured, write_text  # noqa: E402
 
 DEFAULT_SETTING = (2048, 13718)
 SETTINGS = [(p, v) for p in (1024, 2048, 6890) for v in (6890, 13718)]
@@ -330,23 +330,24 @@ def offline_fps(retargeter, frames, length=256):
 # ----------------------------------------------------------------------------- main
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="the default setting only")
     parser.add_argument("--weights", help="a weights file (default: the shipped weights)")
-    parser.add_argument("--threads", type=int, default=os.cpu_count(),
+    parser.add_argument("--threads", type=int_at_least(1), default=os.cpu_count(),
                         help="threads for BLAS, torch and onnxruntime (default: all cores)")
-    parser.add_argument("--workers", type=int,
-                        help="minretarget's SKR threads (Retargeter(workers=...)), each with "
-                             "one BLAS thread; default: --threads; 1: BLAS gets --threads")
+    parser.add_argument("--workers", type=int_at_least(1), default=1,
+                        help="minretarget's SKR threads (Retargeter(workers=...)); over 1, "
+                             "each with one BLAS thread; default 1, the runtime's default, "
+                             "where BLAS gets --threads")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args()
-    workers = args.workers or args.threads
+    workers = args.workers
     blas_threads = 1 if workers > 1 else args.threads
     import torch
     torch.set_num_threads(args.threads)
-    weights = load_weights(args.weights)
+    weights, record = load_measured(args.weights)
     repeats = 15 if args.quick else 30
-    results = {**weights_record(args.weights, weights), "threads": args.threads,
+    results = {**record, "quick": args.quick, "threads": args.threads,
                "minretarget_workers": workers, "minretarget_blas_threads": blas_threads,
                "config": json.loads(weights.config.to_json()),
                "machine": {"processor": platform.processor() or platform.machine(),
@@ -413,4 +414,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    command_line(main)

@@ -79,11 +79,14 @@ def test_compare_pairs_the_model_with_a_saved_runs_model(tmp_path, capsys):
     this.write_text(json.dumps({"per_sequence": results([0.0, 0.0], [3, 1], base=2.0),
                                 "split": "validation"}))
     other.write_text(json.dumps({"per_sequence": results([0.4, -0.4], [3, 1], base=2.0),
-                                 "split": "validation"}))
+                                 "split": "validation", "weights": "old.npz",
+                                 "weights_sha256": "ab" * 32}))
     accuracy.main(["--from-json", str(this), "--compare", str(other), "--json", str(this)])
     assert f"Model minus the model of {other}" in capsys.readouterr().out
     compared = json.loads(this.read_text())["compared_with"]
     assert compared["run"] == str(other)
+    # which weights that was, kept for when the other file is gone
+    assert (compared["weights"], compared["weights_sha256"]) == ("old.npz", "ab" * 32)
     difference = compared["model minus its model"]["MPJPE"]
     assert difference["difference"] == pytest.approx(-(0.4 * 3 - 0.4) / 4)
     assert (difference["sequences_better"], difference["sequences"]) == (1, 2)
@@ -132,3 +135,34 @@ def test_weights_record_names_the_bytes_measured(tmp_path):
     changed[-1] ^= 1                                       # one bit flipped: another digest
     copy.write_bytes(bytes(changed))
     assert accuracy.weights_record(str(copy), weights)["weights_sha256"] != recorded
+
+
+def test_bad_runs_are_refused_at_once(tmp_path, capsys):
+    """No data: refused with the build command, not built (unless --build); a saved run that
+    is not one, and --from-json with options that would not apply: refused by name."""
+    with pytest.raises(SystemExit):
+        accuracy.main(["--data", str(tmp_path / "nodata"), "--quick"])
+    err = capsys.readouterr().err
+    assert "nodata/test is absent: build it (-m training.data build" in err and "--build" in err
+    assert not (tmp_path / "nodata").exists()
+    (tmp_path / "empty.json").write_text("{}")
+    with pytest.raises(ValueError, match="empty.json: not a saved accuracy run"):
+        accuracy.main(["--from-json", str(tmp_path / "empty.json")])
+    (tmp_path / "text.json").write_text("not json")
+    with pytest.raises(ValueError, match="text.json: cannot read a saved run"):
+        accuracy.main(["--from-json", str(tmp_path / "text.json")])
+    saved = tmp_path / "saved.json"
+    saved.write_text(json.dumps({"per_sequence": results([0.0], [3]), "split": "test"}))
+    with pytest.raises(SystemExit):
+        accuracy.main(["--from-json", str(saved), "--weights", "other.npz", "--rows", "model"])
+    assert "--weights, --rows would not apply" in capsys.readouterr().err
+
+
+def test_command_line_errors_are_one_line(tmp_path):
+    import subprocess
+    script = Path(accuracy.__file__)
+    done = subprocess.run([sys.executable, str(script), "--from-json", str(tmp_path / "no.json")],
+                          capture_output=True, text=True)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr == (f"accuracy.py: error: {tmp_path / 'no.json'}: cannot read a saved "
+                           f"run ([Errno 2] No such file or directory: '{tmp_path / 'no.json'}')\n")
