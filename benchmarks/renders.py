@@ -35,6 +35,7 @@ Plus the accuracy protocol's metrics of the result (benchmarks/accuracy.py).
 """
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -161,11 +162,31 @@ def main(argv=None):
     parser.add_argument("--out", default="benchmarks/results/renders", help="output folder")
     args = parser.parse_args(argv)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    paths = [Path(args.data) / "test" / f"{name}.npz" for name, _ in SEQUENCES]
+    missing = [str(path) for path in paths if not path.is_file()]
+    if missing:                                # refused now, not after minutes
+        parser.error(f"no {', '.join(missing)}: build the test data first (python -m "
+                     "training.data build --only test)")
     weights, record = load_measured(args.weights)
+    out.mkdir(parents=True, exist_ok=True)
+    # The pictures are drawn aside and moved in together at the end, so that a failed run
+    # leaves the folder's set (PNGs and renders.json) as it was.
+    with tempfile.TemporaryDirectory(prefix=".renders-", dir=out) as staging:
+        results, seconds = draw(weights, SEQUENCES, paths, Path(staging), out)
+        for png in Path(staging).glob("*.png"):
+            os.replace(png, out / png.name)
+    write_text(out / "renders.json", json.dumps(
+        {"per_sequence": results, "contact_height": CONTACT_HEIGHT,
+         "knee_backward_deg": KNEE_BACKWARD_DEG, "twisted_deg": TWISTED_DEG,
+         **record, "seconds": round(seconds, 1)}, indent=2))
+
+
+def draw(weights, sequences, paths, staging, out):
+    """Retarget and draw each sequence into ``staging``: (their results, PNGs named as in
+    ``out``; the seconds it took)."""
     started, results = time.perf_counter(), []
-    for name, kind in SEQUENCES:
-        sequence = load_sequence(Path(args.data) / "test" / f"{name}.npz")
+    for (name, kind), path in zip(sequences, paths):
+        sequence = load_sequence(path)
         joints, vertices, source_joints, seconds = retarget(weights, sequence)
         truth_joints = sequence["target_joints"].astype(np.float64)
         body = str(sequence["target_body"])
@@ -181,7 +202,7 @@ def main(argv=None):
                        "bone_angle_mean_deg": float(angles.mean())})
         result["bone_angle_frames_over"], result["bone_angle_longest_run_over"] = \
             twisted_frames(angles)
-        png = out / f"{name}_{body}.png"
+        png = staging / f"{name}_{body}.png"
         with tempfile.TemporaryDirectory() as scratch:
             result_npz = Path(scratch) / "result.npz"
             np.savez(result_npz, joints=joints, source_joints=source_joints, vertices=vertices,
@@ -194,20 +215,17 @@ def main(argv=None):
         shrink(png)
         results.append({
             "sequence": name, "kind": kind, "target_body": body,
-            "frames": len(joints), "png": str(png), "retarget_seconds": round(seconds, 2),
+            "frames": len(joints), "png": str(out / png.name),
+            "retarget_seconds": round(seconds, 2),
             "result": result,
             "truth": motion_numbers(truth_joints, sequence["target_points"]),
             "accuracy": sequence_metrics({"model": (joints, vertices)}, sequence)["model"]})
         print(f"{name}: {len(joints)} frames, {1e3 * seconds / len(joints):.1f} ms per frame, "
-              f"{png} ({png.stat().st_size // 1024} kB)", flush=True)
+              f"{out / png.name} ({png.stat().st_size // 1024} kB)", flush=True)
     seconds = time.perf_counter() - started
     print(table(results))
     print(f"\n{seconds:.0f} s")
-    write_text(out / "renders.json", json.dumps(
-        {"per_sequence": results, "contact_height": CONTACT_HEIGHT,
-         "knee_backward_deg": KNEE_BACKWARD_DEG, "twisted_deg": TWISTED_DEG,
-         **record,
-         "seconds": round(seconds, 1)}, indent=2))
+    return results, seconds
 
 
 if __name__ == "__main__":

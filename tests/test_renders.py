@@ -3,6 +3,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import renders  # noqa: E402
@@ -16,3 +17,26 @@ def test_twisted_frames_count_the_frames_past_the_limit_and_their_longest_run():
     assert renders.twisted_frames(angles, limit=61.0) == (0, 0)
     angles[:, 0] = 90.0                           # every frame: one run
     assert renders.twisted_frames(angles) == (12, 12)
+
+
+def test_a_failed_run_leaves_the_pictures_as_they_were(tmp_path, monkeypatch, capsys):
+    """No data: refused at once. A run that fails midway moves nothing in: the old PNGs and
+    renders.json stay a matching set, and no staging folder is left."""
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit):
+        renders.main(["--data", str(tmp_path / "nodata"), "--out", str(out)])
+    assert "build the test data first" in capsys.readouterr().err and not out.exists()
+    (tmp_path / "data" / "test").mkdir(parents=True)
+    for name, _ in renders.SEQUENCES:
+        (tmp_path / "data" / "test" / f"{name}.npz").write_bytes(b"")
+    out.mkdir()
+    (out / "old.png").write_bytes(b"old picture")
+    (out / "renders.json").write_text("{}")
+
+    def fails_midway(weights, sequences, paths, staging, out):
+        (staging / "new.png").write_bytes(b"half the set")
+        raise ValueError("indian_04: damaged")
+    monkeypatch.setattr(renders, "draw", fails_midway)
+    with pytest.raises(ValueError, match="indian_04"):
+        renders.main(["--data", str(tmp_path / "data"), "--out", str(out)])
+    assert sorted(p.name for p in out.iterdir()) == ["old.png", "renders.json"]
