@@ -152,6 +152,7 @@ class Stage:
         self.step = 0
         self.rows = []
         self.running = {}   # loss sums since the last evaluation
+        self.seconds_before = 0.0   # of the log's clock, at a resumed run's start
 
     @property
     def planned(self):
@@ -194,6 +195,7 @@ class Stage:
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
         self.step, self.rows, self.running = state["step"], state["rows"], state["running"]
+        self.seconds_before = self.rows[-1]["seconds"] if self.rows else 0.0
         if state.get("planned"):   # a schedule cut to a time budget goes on as cut
             self.steps = state["steps"]
 
@@ -274,7 +276,8 @@ class Stage:
         clock.last_evaluation = time.perf_counter() - began
         clock.evaluating += clock.last_evaluation
         count = (self.step - 1) % self.eval_every + 1   # steps summed in running
-        row = {"step": self.step, "seconds": round(time.perf_counter() - clock.started, 1),
+        row = {"step": self.step,
+               "seconds": round(self.seconds_before + time.perf_counter() - clock.started, 1),
                **{k: v / count for k, v in self.running.items()}, **metrics}
         self.rows.append(row)
         self.running = {}
