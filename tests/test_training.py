@@ -18,7 +18,8 @@ from training.losses import foot_velocity_error, rotation_distance, skin_loss  #
 from training.recipe import load_recipe  # noqa: E402
 from training.analytic import analytic_rotations  # noqa: E402
 from training.train import (fit_steps, initial_models, main, retarget_ground_truth,  # noqa: E402
-                            run_command, smoothed_skeletons, source_noise)
+                            resume_differences, run_command, smoothed_skeletons,
+                            source_noise)
 
 TINY_RECIPE = {
     "name": "tiny", "seed": 0,
@@ -404,6 +405,18 @@ def test_missing_data_is_found_before_any_stage_trains(run, tmp_path):
         main(["all", "--recipe", str(run / "tiny.json"), "--data", str(data), "--out",
               str(tmp_path / "x")])
     assert not (tmp_path / "x").exists()
+
+
+def test_resume_differences_of_a_run_from_before_init_json(tmp_path):
+    """A run folder without init.json (started before it was written) is resumed whatever
+    --init says; with it, another --init is named. More steps are never a difference."""
+    (tmp_path / "recipe.json").write_text(json.dumps({"seed": 0, "skr": {"steps": 5}}))
+    now = {"recipe": {"seed": 0, "skr": {"steps": 9}}, "init_sha256": "ab"}
+    assert resume_differences(tmp_path, now) == []
+    (tmp_path / "init.json").write_text("null")
+    assert resume_differences(tmp_path, now) == ["init_sha256: None then, ab now"]
+    now["recipe"]["seed"] = 1
+    assert "recipe.seed: 0 then, 1 now" in resume_differences(tmp_path, now)
 
 
 def test_all_waits_for_an_unfinished_stage(run, tmp_path):

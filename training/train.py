@@ -847,8 +847,11 @@ def resume_differences(run_dir, settings):
         if path.is_file():
             then[key] = json.loads(path.read_text())
     then, now = dict(_flat(then)), dict(_flat(settings))
-    return [f"{key}: {then.get(key)} then, {now.get(key)} now" for key in sorted(then.keys()
-            | now.keys()) if then.get(key) != now.get(key)
+    # A run started before init.json was written did not record its --init: not compared.
+    compared = then.keys() | (now.keys() - {"init_sha256"} if "init_sha256" not in then
+                              else now.keys())
+    return [f"{key}: {then.get(key)} then, {now.get(key)} now" for key in sorted(compared)
+            if then.get(key) != now.get(key)
             and key.rsplit(".", 1)[-1] not in RESUMABLE_CHANGES]
 
 
