@@ -40,3 +40,17 @@ def test_a_failed_run_leaves_the_pictures_as_they_were(tmp_path, monkeypatch, ca
     with pytest.raises(ValueError, match="indian_04"):
         renders.main(["--data", str(tmp_path / "data"), "--out", str(out)])
     assert sorted(p.name for p in out.iterdir()) == ["old.png", "renders.json"]
+
+
+def test_a_run_moves_its_pictures_in(tmp_path, monkeypatch):
+    (tmp_path / "data" / "test").mkdir(parents=True)
+    for name, _ in renders.SEQUENCES:
+        (tmp_path / "data" / "test" / f"{name}.npz").write_bytes(b"")
+
+    def draws(weights, sequences, paths, staging, out):
+        (staging / "new.png").write_bytes(b"a picture")
+        return [{"png": str(out / "new.png")}], 1.0
+    monkeypatch.setattr(renders, "draw", draws)
+    renders.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "out")])
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["new.png", "renders.json"]
+    assert (tmp_path / "out" / "new.png").read_bytes() == b"a picture"

@@ -120,7 +120,7 @@ def test_resume_continues_to_the_same_result(run, tmp_path):
     main(["skr", "--stop-at", "4"] + common)
     stopped = torch.load(tmp_path / "resumed" / "skr.pt", weights_only=True)
     assert stopped["step"] == 4
-    stopped["rows"][-1]["seconds"] = 1000.0        # as if the first part had taken long
+    stopped["seconds"] = 1000.0                    # as if the first part had taken long
     torch.save(stopped, tmp_path / "resumed" / "skr.pt")
     main(["skr", "--resume"] + common)
     whole = torch.load(run / "run" / "skr.pt", weights_only=True)
@@ -338,6 +338,7 @@ def test_set_overrides_the_recipe_and_clips_are_cut_to_length(run, tmp_path):
     ('skr.learning_rate="x"', "skr.learning_rate: expected float"),
     ("skr.tpose_fraction=2", "skr.tpose_fraction: 2 is out of range"),
     ("smrm.input_noise=-0.1", "smrm.input_noise: -0.1 is out of range"),
+    ("smrm.input_noise_autocorrelation=-1.5", "input_noise_autocorrelation: -1.5 is out of"),
     ('smrm.input_noise_bias=[0.1, "a"]', "smrm.input_noise_bias: .* is out of range"),
     ("seed=-1", "seed: must be 0 or more, got -1"),
     ("name=3", "name: expected str, got 3")])
@@ -345,7 +346,8 @@ def test_recipe_values_are_checked(override, message):
     with pytest.raises(ValueError, match=message):
         load_recipe("cpu", [override])
     assert load_recipe("cpu", ["skr.tpose_fraction=1", "smrm.cycle=0",
-                               "smrm.input_noise_bias=[0.01, 0]"]).smrm.cycle == 0
+                               "smrm.input_noise_bias=[0.01, 0]",
+                               "smrm.input_noise_autocorrelation=-0.0079"]).smrm.cycle == 0
 
 
 def test_a_run_folder_is_continued_or_replaced_never_mixed(run, tmp_path, capsys):
@@ -417,6 +419,43 @@ def test_resume_differences_of_a_run_from_before_init_json(tmp_path):
     assert resume_differences(tmp_path, now) == ["init_sha256: None then, ab now"]
     now["recipe"]["seed"] = 1
     assert "recipe.seed: 0 then, 1 now" in resume_differences(tmp_path, now)
+    now["recipe"].update(seed=0, smrm={"learning_rate": 0.5}, skr={"learning_rate": 0.5})
+    assert resume_differences(tmp_path, now) == ["init_sha256: None then, ab now"]  # unrecorded
+    (tmp_path / "recipe.json").write_text(json.dumps({"seed": 0, "skr": {"learning_rate": 1},
+                                                      "smrm": {"learning_rate": 1}}))
+    (tmp_path / "skr.pt").write_bytes(b"")       # skr started: its section counts, smrm's not
+    assert resume_differences(tmp_path, now) == ["init_sha256: None then, ab now",
+                                                 "recipe.skr.learning_rate: 1 then, 0.5 now"]
+
+
+def test_ctrl_c_in_a_stages_last_step_stops_the_run(run, tmp_path, monkeypatch):
+    from training import train
+    calls, loss = [], train.skr_loss
+
+    def interrupted_in_the_last_step(*args):
+        calls.append(1)
+        if len(calls) == TINY_RECIPE["skr"]["steps"]:
+            os.kill(os.getpid(), signal.SIGINT)
+        return loss(*args)
+    monkeypatch.setattr(train, "skr_loss", interrupted_in_the_last_step)
+    out = tmp_path / "stopped"
+    assert run_command(["all", "--recipe", str(run / "tiny.json"), "--data", str(run),
+                        "--out", str(out), "--threads", "1"]) == 130
+    assert sorted(p.name for p in out.glob("*.pt")) == ["skr.pt"] and not (
+        out / "weights.npz").exists()
+
+
+def test_more_steps_for_a_stage_others_learned_from_is_refused(run, tmp_path):
+    common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--out",
+              str(tmp_path / "run"), "--threads", "1"]
+    main(["skr,refine", "--stop-at", "6"] + common)          # skr done, refine stopped
+    with pytest.raises(ValueError, match=r"skr goes on from step 6 to 9, but refine learned "
+                                         r"its output so far: delete refine\.\*"):
+        main(["skr,refine", "--resume", "--set", "skr.steps=9"] + common)
+    for path in (tmp_path / "run").glob("refine.*"):
+        path.unlink()
+    main(["skr,refine", "--resume", "--set", "skr.steps=9"] + common)
+    assert torch.load(tmp_path / "run" / "skr.pt", weights_only=True)["step"] == 9
 
 
 def test_all_waits_for_an_unfinished_stage(run, tmp_path):
@@ -439,25 +478,32 @@ def test_a_stage_stops_on_a_non_finite_loss_and_on_ctrl_c(run, tmp_path, monkeyp
     after the step in progress, checkpointed, and --resume ends where one run would."""
     common = ["--recipe", str(run / "tiny.json"), "--data", str(run), "--threads", "1"]
     nan = tmp_path / "nan"
-    with pytest.raises(ValueError, match=r"skr: loss \{'loss': nan\} at step [2-6] \(too high"):
+    with pytest.raises(ValueError, match=r"skr: validation \{'val_mpjpe': nan, .* at step 1 "
+                                         r"\(too high a learning rate\?\)"):
         main(["skr", "--out", str(nan), "--init", str(run / "run" / "weights.npz"),
               "--set", "skr.learning_rate=1e30", "--set", "skr.eval_every=1"] + common)
+    assert not (nan / "skr.pt").exists()                 # nothing saved from a NaN
+    # The way on: the stage's files deleted (none here), --resume with another rate.
+    main(["skr", "--resume", "--out", str(nan), "--init", str(run / "run" / "weights.npz"),
+          "--set", "skr.eval_every=1"] + common)
     kept = torch.load(nan / "skr.pt", weights_only=True)
-    assert all(torch.isfinite(v).all() for v in kept["modules"]["skr"].values())
+    assert kept["step"] == 6 and all(torch.isfinite(v).all()
+                                     for v in kept["modules"]["skr"].values())
 
     from training import train
     calls, loss = [], train.skr_loss
 
-    def interrupted_at_the_third_step(*args):
+    def interrupted_at_the_second_step(*args):
         calls.append(1)
-        if len(calls) == 3:
+        if len(calls) == 2:
             os.kill(os.getpid(), signal.SIGINT)           # a Ctrl-C inside the step
         return loss(*args)
-    monkeypatch.setattr(train, "skr_loss", interrupted_at_the_third_step)
+    monkeypatch.setattr(train, "skr_loss", interrupted_at_the_second_step)
     out = ["--out", str(tmp_path / "stopped")]
     assert run_command(["skr"] + out + common) == 130
     assert "interrupted; each stage's checkpoint is kept" in capsys.readouterr().err
-    assert torch.load(tmp_path / "stopped" / "skr.pt", weights_only=True)["step"] == 3
+    stopped = torch.load(tmp_path / "stopped" / "skr.pt", weights_only=True)
+    assert (stopped["step"], stopped["running_steps"]) == (2, 2)     # between evaluations
     monkeypatch.undo()
     main(["skr", "--resume"] + out + common)
     whole = torch.load(run / "run" / "skr.pt", weights_only=True)["modules"]["skr"]

@@ -118,12 +118,15 @@ def _in_range(key, value, default, where):
                       and math.isfinite(v) and v >= 0 for v in value)
     elif isinstance(default, int):
         bad = value < 1
+    elif "autocorrelation" in key:
+        bad = not -1 <= value <= 1
     else:
         bad = (not math.isfinite(value) or value < 0 or (value <= 0 and "rate" in key)
-               or (value > 1 and ("fraction" in key or "autocorrelation" in key)))
+               or (value > 1 and "fraction" in key))
     if bad:
         raise ValueError(f"{where}: {value!r} is out of range (counts at least 1, learning "
-                         "rates above 0, weights and noise at least 0, fractions at most 1)")
+                         "rates above 0, weights and noise at least 0, fractions at most 1, "
+                         "autocorrelations in [-1, 1])")
 
 
 def _build(cls, values, where):

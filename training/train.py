@@ -17,12 +17,15 @@ file, stages not listed keep its networks, and the export happens after any stag
 recipe.json and the weights' metadata record the recipe as run.
 A folder that holds an earlier run is refused unless ``--resume`` continues it (each
 unfinished stage from its checkpoint; finished stages are skipped; the recipe and --init
-must be the ones it started with, except that stages may be given more steps) or
-``--overwrite`` deletes it first. ``--stop-at STEP`` stops each stage there, to resume
+must be the ones it started with, except that stages may be given more steps, and a stage
+whose files were deleted is trained afresh with this recipe; a stage given more steps is
+refused while one that learned its output has a checkpoint) or ``--overwrite`` deletes it
+first. ``--stop-at STEP`` stops each stage there, to resume
 later, and the stages after the first that stops wait for it (refine and denoise learn
 SKR's errors); ``--stage-seconds S`` fits each stage's schedule to S seconds of wall clock
 instead (a lent GPU's few minutes). Ctrl-C stops a stage after the step in progress and
-checkpoints it; a loss that is not finite stops it with its last evaluated checkpoint kept.
+checkpoints it; a loss or validation metric that is not finite stops it with its last
+good checkpoint kept (delete the stage's files and --resume with another recipe value).
 From the command line bad input is one line naming it (exit status 1), not a traceback.
 ``--pack FILE`` (a data pack, ``training.data.pack``): SKR poses fresh frames for every batch
 on the training device (``training.data.online``) instead of reading ``skr_train.npz`` (for a
@@ -152,6 +155,7 @@ class Stage:
         self.step = 0
         self.rows = []
         self.running = {}   # loss sums since the last evaluation
+        self.running_steps = 0      # the steps summed there
         self.seconds_before = 0.0   # of the log's clock, at a resumed run's start
 
     @property
@@ -163,8 +167,13 @@ class Stage:
     def checkpoint_path(self):
         return self.run_dir / f"{self.name}.pt"
 
-    def save(self):
+    def elapsed(self, clock):
+        """Seconds of the log's clock: this run's and those of the runs it resumed."""
+        return self.seconds_before + time.perf_counter() - clock.started
+
+    def save(self, clock):
         state = {"step": self.step, "rows": self.rows, "running": self.running,
+                 "running_steps": self.running_steps, "seconds": self.elapsed(clock),
                  "modules": {k: m.state_dict() for k, m in self.modules.items()},
                  "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                  "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
@@ -195,7 +204,10 @@ class Stage:
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
         self.step, self.rows, self.running = state["step"], state["rows"], state["running"]
-        self.seconds_before = self.rows[-1]["seconds"] if self.rows else 0.0
+        self.running_steps = state.get("running_steps", (self.step - 1) % self.eval_every + 1
+                                       if self.running else 0)
+        self.seconds_before = state.get("seconds", self.rows[-1]["seconds"] if self.rows
+                                        else 0.0)
         if state.get("planned"):   # a schedule cut to a time budget goes on as cut
             self.steps = state["steps"]
 
@@ -224,7 +236,9 @@ class Stage:
         with stop_between_steps() as stop_asked:
             self._steps(train_step, evaluate, stop_at, seconds, clock, progress, stop_asked)
         if self.step < self.steps:
-            self.save()
+            self.save(clock)
+        if stop_asked:          # asked during the last step: the stage is saved, stop here
+            raise KeyboardInterrupt
         progress.close()
         if self.planned:
             print(f"{self.name}: {self.steps:,} of the recipe's {self.recipe_steps:,} steps, "
@@ -236,7 +250,7 @@ class Stage:
     def _steps(self, train_step, evaluate, stop_at, seconds, clock, progress, stop_asked):
         while self.step < (self.steps if stop_at is None else min(self.steps, stop_at)):
             if stop_asked:
-                self.save()
+                self.save(clock)
                 raise KeyboardInterrupt
             done = self.step - clock.first
             if seconds is not None and done > 0 and (
@@ -256,6 +270,7 @@ class Stage:
                                  "evaluated step")
             for key, value in losses.items():
                 self.running[key] = self.running.get(key, 0.0) + value
+            self.running_steps += 1
             self.step += 1
             progress.update(1)
             if self.step % self.eval_every == 0 or self.step == self.steps:
@@ -263,7 +278,7 @@ class Stage:
                 if (seconds is not None and self.step - clock.first >= PLAN_AFTER_STEPS
                         and self.step < self.steps):
                     self.plan(clock, seconds, progress)
-                self.save()
+                self.save(clock)
                 self.write_log()
 
     def evaluate(self, evaluate, clock, progress):
@@ -275,12 +290,16 @@ class Stage:
             metrics = evaluate()
         clock.last_evaluation = time.perf_counter() - began
         clock.evaluating += clock.last_evaluation
-        count = (self.step - 1) % self.eval_every + 1   # steps summed in running
-        row = {"step": self.step,
-               "seconds": round(self.seconds_before + time.perf_counter() - clock.started, 1),
-               **{k: v / count for k, v in self.running.items()}, **metrics}
+        bad = {k: v for k, v in metrics.items() if not math.isfinite(v)}
+        if bad:     # not saved: the last checkpoint, before it, is kept
+            raise ValueError(f"{self.name}: validation {bad} at step {self.step} (too high a "
+                             f"learning rate?); {self.checkpoint_path} keeps the last good "
+                             "step")
+        row = {"step": self.step, "seconds": round(self.elapsed(clock), 1),
+               **{k: v / max(1, self.running_steps) for k, v in self.running.items()},
+               **metrics}
         self.rows.append(row)
-        self.running = {}
+        self.running, self.running_steps = {}, 0
         progress.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()})
 
     def plan(self, clock, seconds, progress):
@@ -838,21 +857,52 @@ def _flat(values, prefix=""):
 
 
 def resume_differences(run_dir, settings):
-    """What ``settings`` ({"recipe": ..., "init_sha256": ...}, as ``run_settings`` gives)
+    """What ``settings`` ({"recipe": ..., "init_sha256": ...}, as ``main`` makes them)
     change from the ones the run in ``run_dir`` was started with, a list of "key: then,
-    now" strings; the steps and evaluation spacing may change."""
+    now" strings. Only what the run recorded counts (an older run lacks later fields, whose
+    defaults it used, and may lack init.json), and of the stages' sections only those of
+    stages with a checkpoint there (a stage not started yet, or whose files were deleted to
+    train it again, takes this run's); the steps and evaluation spacing may change."""
     then = {}
     for name, key in (("recipe.json", "recipe"), ("init.json", "init_sha256")):
         path = Path(run_dir) / name
         if path.is_file():
             then[key] = json.loads(path.read_text())
     then, now = dict(_flat(then)), dict(_flat(settings))
-    # A run started before init.json was written did not record its --init: not compared.
-    compared = then.keys() | (now.keys() - {"init_sha256"} if "init_sha256" not in then
-                              else now.keys())
-    return [f"{key}: {then.get(key)} then, {now.get(key)} now" for key in sorted(compared)
-            if then.get(key) != now.get(key)
-            and key.rsplit(".", 1)[-1] not in RESUMABLE_CHANGES]
+    unstarted = {f"recipe.{stage}." for stage in STAGES
+                 if not (Path(run_dir) / f"{stage}.pt").is_file()}
+    return [f"{key}: {then[key]} then, {now.get(key)} now" for key in sorted(then)
+            if then[key] != now.get(key) and key.rsplit(".", 1)[-1] not in RESUMABLE_CHANGES
+            and not any(key.startswith(prefix) for prefix in unstarted)]
+
+
+LEARNERS = {"skr": ("refine", "denoise"), "refine": ("denoise",)}   # learn from its output
+
+
+def check_learners(run_dir, recipe):
+    """ValueError if a stage in ``run_dir`` is to train further (more steps than it ran)
+    while a stage that learns from its output has a checkpoint: that one would keep what
+    it learned from the old output."""
+    def progress(stage):
+        """(step reached, steps to reach) of the stage's checkpoint, or None."""
+        path = Path(run_dir) / f"{stage}.pt"
+        if not path.is_file():
+            return None
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as error:  # noqa: BLE001  (as Stage.load)
+            raise ValueError(f"{path}: not a readable checkpoint ({type(error).__name__})") \
+                from None
+        return state["step"], (state["steps"] if state.get("planned")
+                               else getattr(recipe, stage).steps)
+    for stage, learners in LEARNERS.items():
+        done = progress(stage)
+        stale = [name for name in learners if progress(name) is not None]
+        if done is not None and done[0] < done[1] and stale:
+            raise ValueError(f"--resume: {stage} goes on from step {done[0]} to {done[1]}, but "
+                             f"{' and '.join(stale)} learned its output so far: delete "
+                             f"{', '.join(f'{name}.*' for name in stale)} in {run_dir} to "
+                             "train them again on it")
 
 
 def provenance(recipe, data_dir, init=None, pack=None, online=ONLINE_FRAMES):
@@ -976,8 +1026,10 @@ def main(argv=None):
         changed = resume_differences(run_dir, settings)
         if changed:
             raise ValueError(f"--resume: {run_dir} was started with other settings ("
-                             f"{'; '.join(changed)}): resume with the same, or start again "
-                             "with --overwrite")
+                             f"{'; '.join(changed)}): resume with the same, delete a stage's "
+                             f"files there (<stage>.pt, .csv, .png) to train it again with "
+                             "this recipe, or start again with --overwrite")
+        check_learners(run_dir, recipe)
     # The recipe's own stages: refine and denoise only if its model has them.
     optional = {"refine": recipe.model.refines, "denoise": recipe.model.denoises}
     own = tuple(n for n in STAGES if optional.get(n, True))
