@@ -400,11 +400,9 @@ def main(argv=None):
             parser.error(f"--compare: {args.compare} scored {compared['split']} sequences"
                          f"{' (quick)' if compared.get('quick') else ''}, this run "
                          f"{split}{' (quick)' if quick else ''}")
-        other = compared["per_sequence"]
+        other = compared
     if saved:
         summary = summarize(saved["per_sequence"], saved["split"], other, args.compare)
-        if args.compare:
-            summary["compared_with"].update(_measured(compared))
         text = summary.pop("text")
         print(text)
         if args.markdown:
@@ -436,7 +434,7 @@ def main(argv=None):
         planned = [(path.stem, None) for path in paths]    # lengths known once loaded
     if other is not None:   # refused now, not after the run
         try:
-            check_same_sequences(planned, other)
+            check_same_sequences(planned, other["per_sequence"])
         except ValueError as error:
             parser.error(str(error))
     started, results, model_seconds = time.perf_counter(), [], 0.0
@@ -455,8 +453,6 @@ def main(argv=None):
 
     seconds = time.perf_counter() - started
     summary = summarize(results, split, other, args.compare)
-    if args.compare:
-        summary["compared_with"].update(_measured(compared))
     text = summary.pop("text")
     total_frames = summary["frames"]
     print(text)
@@ -470,16 +466,11 @@ def main(argv=None):
              "quick": args.quick, "seconds": round(seconds, 1)}, indent=2))
 
 
-def _measured(saved):
-    """What a saved run measured: its weights file, their SHA-256 and metadata, kept with a
-    comparison so that it still says which weights it was against once the file is gone."""
-    return {key: saved.get(key) for key in ("weights", "weights_sha256", "weights_metadata")}
-
-
 def summarize(results, split, other=None, other_name=None):
     """The tables of a run from its per-sequence results: a dict of the JSON's summary fields
-    and ``text``, the markdown of every table; with ``other`` (a saved run's per-sequence
-    results, from the file ``other_name``) also the model against its model."""
+    and ``text``, the markdown of every table; with ``other`` (a saved run, ``load_results``,
+    from the file ``other_name``) also the model against its model, and which weights that
+    run measured (kept, so that the comparison still says so once the file is gone)."""
     overall = {**frame_weighted(results), "paper": PAPER}
     total_frames = sum(r["frames"] for r in results)
     by_body = {body: frame_weighted(results, lambda r, b=body: r["target_body"] == b)
@@ -502,8 +493,11 @@ def summarize(results, split, other=None, other_name=None):
                  for name, comparison in paired.items()]
     compared = {}
     if other is not None:
-        compared = {"compared_with": {"run": other_name,
-                                      "model minus its model": against_saved(results, other)}}
+        measured = {key: other.get(key) for key in ("weights", "weights_sha256",
+                                                    "weights_metadata")}
+        compared = {"compared_with": {"run": other_name, **measured,
+                                      "model minus its model": against_saved(
+                                          results, other["per_sequence"])}}
         sections.append(comparison_table(compared["compared_with"]["model minus its model"],
                                          f"Model minus the model of {other_name}, per sequence "
                                          "(frame-weighted; below zero: this run better)"))

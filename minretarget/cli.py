@@ -32,8 +32,8 @@ import warnings
 from pathlib import Path
 
 from . import __version__
-from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track, abandon_run, finish_run,
-                         prepare_out_dir, run_record, save_checkpoint)
+from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
+                         abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
 from .extras import MissingExtra, require
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,

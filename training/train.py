@@ -140,6 +140,16 @@ class ResumeMismatch(ValueError):
     """A checkpoint made on other training data than the resuming run's."""
 
 
+def read_checkpoint(path):
+    """A stage's checkpoint (``Stage.save``), without pickle; ValueError naming it if it is
+    not one."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001  (pickle, zip and torch errors alike)
+        raise ValueError(f"{path}: not a readable checkpoint ({type(error).__name__}); delete "
+                         "it (and the stage's .csv and .png) to train the stage again") from None
+
+
 class Stage:
     """The loop every stage shares: batches, schedule, logging, evaluation, checkpoints.
     ``source`` names the training data where a stage can draw from more than one (SKR: built
@@ -184,12 +194,7 @@ class Stage:
             file.write(buffer.getvalue())
 
     def load(self):
-        try:
-            state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
-        except Exception as error:  # noqa: BLE001  (pickle, zip and torch errors alike)
-            raise ValueError(f"{self.checkpoint_path}: not a readable checkpoint "
-                             f"({type(error).__name__}); start the stage again with "
-                             "--overwrite") from None
+        state = read_checkpoint(self.checkpoint_path)
         if state["step"] > (state["steps"] if state.get("planned") else self.steps):
             raise ResumeMismatch(f"{self.checkpoint_path} is at step {state['step']}, past "
                                  f"this recipe's {self.steps}: resume with "
@@ -883,24 +888,16 @@ def check_learners(run_dir, recipe):
     """ValueError if a stage in ``run_dir`` is to train further (more steps than it ran)
     while a stage that learns from its output has a checkpoint: that one would keep what
     it learned from the old output."""
-    def progress(stage):
-        """(step reached, steps to reach) of the stage's checkpoint, or None."""
-        path = Path(run_dir) / f"{stage}.pt"
-        if not path.is_file():
-            return None
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as error:  # noqa: BLE001  (as Stage.load)
-            raise ValueError(f"{path}: not a readable checkpoint ({type(error).__name__})") \
-                from None
-        return state["step"], (state["steps"] if state.get("planned")
-                               else getattr(recipe, stage).steps)
     for stage, learners in LEARNERS.items():
-        done = progress(stage)
-        stale = [name for name in learners if progress(name) is not None]
-        if done is not None and done[0] < done[1] and stale:
-            raise ValueError(f"--resume: {stage} goes on from step {done[0]} to {done[1]}, but "
-                             f"{' and '.join(stale)} learned its output so far: delete "
+        path = Path(run_dir) / f"{stage}.pt"
+        stale = [name for name in learners if (Path(run_dir) / f"{name}.pt").is_file()]
+        if not (stale and path.is_file()):
+            continue
+        state = read_checkpoint(path)
+        steps = state["steps"] if state.get("planned") else getattr(recipe, stage).steps
+        if state["step"] < steps:
+            raise ValueError(f"--resume: {stage} goes on from step {state['step']} to {steps}, "
+                             f"but {' and '.join(stale)} learned its output so far: delete "
                              f"{', '.join(f'{name}.*' for name in stale)} in {run_dir} to "
                              "train them again on it")
 
