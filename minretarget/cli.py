@@ -8,6 +8,7 @@
                          [--no-facing-check]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
+    minretarget batch JOB --out DIR [--workers N] [--ray auto|ADDRESS] [--resume]
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
 axes: ``minretarget.units``. Needs the ``cli`` extra (``pip install "minretarget[cli]"``):
@@ -348,6 +349,9 @@ def build_parser():
                        help="replace the files of an earlier run in --out (without it, a "
                        "folder holding them is refused)")
     retarget.set_defaults(run=_retarget)
+
+    from .batch import add_command         # here: batch imports this module
+    add_command(commands)
 
     preview = commands.add_parser("render", help="draw a result's source and target over time")
     preview.add_argument("result", help="a result.npz written by retarget or demo")

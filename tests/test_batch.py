@@ -1,0 +1,212 @@
+"""`minretarget batch`: a whole job checked before any work, each pair's outputs the bytes of
+its own `retarget` run (local pool and Ray alike), resume, failures kept to their pair, a
+killed worker's pair run again."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import GOLDEN
+from minretarget import batch, cli
+from minretarget.formats.mesh import write_mesh
+
+trimesh = pytest.importorskip("trimesh")
+WEIGHTS = str(GOLDEN / "tiny_weights.npz")
+ROOT = Path(__file__).resolve().parent.parent
+POINTS, SUBSET = 80, 70
+OPTIONS = {"format": "ply,npz,glb,bvh", "points": SUBSET, "weights": WEIGHTS}
+
+
+def walk(frames, seed):
+    """(frames, POINTS, 3) float32 clouds of a body-sized blob walking along +X."""
+    rng = np.random.default_rng(seed)
+    path = np.linspace(0, 1, frames)[:, None, None] * [1.0, 0, 0]
+    clouds = rng.normal(size=(frames, POINTS, 3)) * [0.2, 0.5, 0.1] + [0, 0.9, 0] + path
+    return clouds.astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    """Two sources (a long and a short array of clouds) and two T-pose-like targets."""
+    folder = tmp_path_factory.mktemp("library")
+    (folder / "motions").mkdir()
+    np.save(folder / "motions" / "long.npy", walk(100, 0))
+    np.save(folder / "motions" / "short.npy", walk(20, 1))
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    for name, scale in (("slim", [0.85, 0.9, 0.2]), ("wide", [0.95, 0.8, 0.3])):
+        write_mesh(folder / f"{name}.ply", mesh.vertices * scale + [0, 0.9, 0], mesh.faces)
+    return folder
+
+
+def write_job(folder, name="job.json", **job):
+    path = Path(folder) / name
+    path.write_text(json.dumps({"sources": ["motions/*.npy"], "targets": ["slim.ply",
+                                                                        "wide.ply"],
+                                "options": OPTIONS, **job}))
+    return path
+
+
+def files(folder):
+    """{relative path: bytes} of every file under ``folder``, summary.json aside."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(Path(folder).rglob("*"))
+            if p.is_file() and p.name not in (batch.SUMMARY, batch.DONE)}
+
+
+@pytest.fixture(scope="module")
+def reference(library):
+    """Each pair run alone by `minretarget retarget`, as one tree of files."""
+    out = library / "single"
+    for target in ("slim", "wide"):
+        for source in ("long", "short"):
+            assert cli.main(["retarget", str(library / "motions" / f"{source}.npy"),
+                             str(library / f"{target}.ply"), "--out", str(out / target / source),
+                             "--format", OPTIONS["format"], "--points", str(SUBSET),
+                             "--weights", WEIGHTS]) == 0
+    return files(out)
+
+
+@pytest.fixture(scope="module")
+def local_run(library):
+    out = library / "local"
+    summary = batch.run_batch(write_job(library), out, workers=2, progress=False)
+    return out, summary
+
+
+def test_a_job_is_checked_whole_before_any_work(library, tmp_path):
+    (tmp_path / "motions").mkdir()
+    np.save(tmp_path / "motions" / "nan.npy", np.zeros((3, 5)))       # not (T, P, 3)
+    job = tmp_path / "job.toml"
+    job.write_text(f"""
+sources = ["motions/*.npy", "missing.bvh", "{library}/motions/*.npy"]
+targets = ["{library}/slim.ply", "{library}/*.obj"]
+pairs = [{{source = "long", target = "fat"}}]
+colour = "red"
+[options]
+units = "inch"
+foot_lock = false
+foot_leash = 0.1
+smooth = false
+""")
+    with pytest.raises(batch.JobError) as raised:
+        batch.run_batch(job, tmp_path / "out", progress=False)
+    problems = "\n".join(raised.value.problems)
+    for expected in ("unknown key 'colour'", "missing.bvh: no such file", "*.obj: matches "
+                     "nothing", "units: must be one of m, cm, mm, got 'inch'", "foot_leash "
+                     "needs foot_lock", "unknown option 'smooth'", "target 'fat' is not a name"):
+        assert expected in problems
+    assert len(raised.value.problems) == 7
+    assert not (tmp_path / "out").exists()
+    # Once the options parse, the files are read: a source that is not (T, P, 3) frames.
+    job.write_text(f'sources = ["motions/*.npy"]\ntargets = ["{library}/slim.ply"]\n')
+    with pytest.raises(batch.JobError, match="source nan: .*expected an array of frames"):
+        batch.run_batch(job, tmp_path / "out", progress=False)
+
+
+def test_local_batch_writes_what_each_retarget_run_writes(local_run, reference):
+    out, summary = local_run
+    assert files(out) == reference
+    assert [(e["pair"], e["status"], e["attempts"]) for e in summary["pairs"]] == [
+        ("slim/long", "done", 1), ("wide/long", "done", 1), ("slim/short", "done", 1),
+        ("wide/short", "done", 1)]                                       # longest first
+    assert summary["frames"] == 240 and summary["workers"] == 2
+    assert json.loads((out / "slim" / "long" / batch.DONE).read_text())["outputs"] == [
+        "frame_000000.ply .. frame_000099.ply", "result.npz", "result.glb", "result.bvh"]
+
+
+def test_a_failing_pair_does_not_stop_the_others(library, reference, tmp_path, capsys):
+    clouds = walk(20, 1)
+    clouds[5, 3] = np.nan
+    np.save(tmp_path / "broken.npy", clouds)
+    job = write_job(tmp_path, sources=[str(library / "motions" / "short.npy"), "broken.npy"],
+                    targets=[str(library / "slim.ply")])
+    assert cli.main(["batch", str(job), "--out", str(tmp_path / "out"), "--workers", "1"]) == 1
+    summary = json.loads((tmp_path / "out" / batch.SUMMARY).read_text())
+    failed = [e for e in summary["pairs"] if e["status"] == "failed"]
+    assert [e["pair"] for e in failed] == ["slim/broken"] and "frame 5" in failed[0]["error"]
+    assert "slim/broken" in capsys.readouterr().err
+    done = files(tmp_path / "out" / "slim" / "short")
+    assert done == {k.removeprefix("slim/short/"): v for k, v in reference.items()
+                    if k.startswith("slim/short/")}
+
+
+def test_resume_skips_the_pairs_done(library, local_run, tmp_path):
+    out = tmp_path / "out"
+    job = write_job(library)
+    with pytest.raises(batch.JobError, match="add --resume"):
+        batch.run_batch(job, local_run[0], progress=False)
+    # An earlier run finished two pairs (copied from the local run) and left nothing else.
+    for name in ("slim/long", "wide/short"):
+        (out / name).mkdir(parents=True)
+        for path in (local_run[0] / name).iterdir():
+            (out / name / path.name).write_bytes(path.read_bytes())
+    summary = batch.run_batch(job, out, workers=1, resume=True, progress=False)
+    assert files(out) == files(local_run[0])
+    assert {e["pair"] for e in summary["pairs"] if e.get("skipped")} == {"slim/long",
+                                                                         "wide/short"}
+    assert summary["frames"] == 120
+
+
+def worker_pids(parent):
+    """The pids of the pool processes a batch process started (not its resource tracker)."""
+    children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
+    return [int(pid) for pid in children
+            if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+
+
+def start_batch(job, out, *extra):
+    return subprocess.Popen([sys.executable, "-m", "minretarget", "batch", str(job), "--out",
+                             str(out), *extra], cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(path, process, seconds=120):
+    deadline = time.monotonic() + seconds
+    while not path.exists():
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+        time.sleep(0.01)
+
+
+def test_a_killed_worker_is_replaced_and_its_pair_resumed(library, local_run, tmp_path):
+    out = tmp_path / "out"
+    process = start_batch(write_job(library), out, "--workers", "2")
+    wait_for(out / "slim" / "long" / "frame_000040.ply", process)     # after a checkpoint
+    os.kill(worker_pids(process.pid)[0], signal.SIGKILL)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 0, stderr
+    assert files(out) == files(local_run[0])
+    summary = json.loads((out / batch.SUMMARY).read_text())
+    assert max(e["attempts"] for e in summary["pairs"]) == 2
+
+
+def test_a_killed_batch_resumes_without_redoing_finished_pairs(library, local_run, tmp_path):
+    out = tmp_path / "out"
+    process = start_batch(write_job(library), out, "--workers", "1")
+    wait_for(out / "wide" / "long" / "frame_000040.ply", process)     # slim/long is done
+    for pid in worker_pids(process.pid) + [process.pid]:
+        os.kill(pid, signal.SIGKILL)
+    process.communicate(timeout=60)
+    finished = (out / "slim" / "long" / batch.DONE).stat().st_mtime_ns
+    summary = batch.run_batch(write_job(library), out, workers=1, resume=True, progress=False)
+    assert files(out) == files(local_run[0])
+    assert (out / "slim" / "long" / batch.DONE).stat().st_mtime_ns == finished
+    assert summary["frames"] == 140                   # wide/long and the two short pairs
+
+
+def test_ray_writes_the_same_bytes(library, local_run, tmp_path):
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+             _node_ip_address="127.0.0.1")
+    try:
+        summary = batch.run_batch(write_job(library), tmp_path / "out", ray="auto",
+                                  progress=False)
+    finally:
+        ray.shutdown()
+    assert summary["engine"] == "ray" and summary["workers"] == 2
+    assert files(tmp_path / "out") == files(local_run[0])
