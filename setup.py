@@ -3,9 +3,13 @@ from pathlib import Path
 from setuptools import find_packages, setup
 
 # The command line's file formats and previews (imported lazily; the core needs none): trimesh
-# reads and writes PLY/OBJ, matplotlib (with its Pillow) draws PNG/GIF, tqdm shows progress.
+# reads and writes PLY/OBJ, matplotlib (with its Pillow) draws PNG/GIF, tqdm shows progress,
+# threadpoolctl gives each of `minretarget batch`'s workers one BLAS thread.
 # The .glb and .bvh writers need only NumPy.
-CLI = ["trimesh>=4.0", "matplotlib>=3.6", "tqdm>=4.60"]
+CLI = ["trimesh>=4.0", "matplotlib>=3.6", "tqdm>=4.60", "threadpoolctl>=3.1"]
+# `minretarget batch --ray`: the same job on a Ray cluster (tests/test_batch.py starts a
+# local instance).
+RAY = ["ray>=2.10"]
 
 setup(
     name="minretarget",
@@ -24,7 +28,8 @@ setup(
         # torch is pinned: 2.13.0's CPU wheel is on the project's machines, and an unpinned
         # torch pulls a multi-GB CUDA build.
         "train": ["torch==2.13.0", "anny==0.6.2", "trimesh>=4.0", "tqdm>=4.60", "matplotlib>=3.6"],
-        "test": ["pytest>=7", "hypothesis>=6"] + CLI,
+        "ray": RAY,
+        "test": ["pytest>=7", "hypothesis>=6"] + CLI + RAY,
         # benchmarks/speed.py: the engines minretarget is compared with, and BLAS thread
         # control (threadpoolctl, the library scikit-learn uses for the same job)
         "bench": ["torch==2.13.0", "onnxruntime>=1.17", "onnx>=1.15", "onnxscript>=0.2",
