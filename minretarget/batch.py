@@ -29,6 +29,7 @@ resumes the others from their checkpoints; without it a DIR holding any pair's f
 refused. ``DIR/summary.json`` lists every pair's status, frames, seconds and outputs; the
 command exits with status 0 only if every pair is done.
 """
+import argparse
 import concurrent.futures
 import glob
 import hashlib
@@ -146,7 +147,7 @@ def check_options(raw, where, base=DEFAULTS):
             continue
         try:
             options[name] = OPTIONS[name][1](value)
-        except Exception as error:   # noqa: BLE001  (ValueError, argparse.ArgumentTypeError)
+        except (ValueError, argparse.ArgumentTypeError) as error:
             problems.append(f"{where}: {name}: {error}")
     if options["foot_leash"] is not None and not options["foot_lock"] and (
             "foot_leash" in raw or "foot_lock" in raw):
@@ -506,9 +507,10 @@ class RayWorker:
 
 
 class RayPool:
-    """``count`` Ray actors (None: one per CPU of the cluster) on the cluster at ``address``
-    ("auto": the one running here or at RAY_ADDRESS), or on the instance this process has
-    started already (``ray.init``). Paths must read and write the same files on every node."""
+    """``count`` Ray actors (at most, and by default, one per CPU of the cluster) on the
+    cluster at ``address`` ("auto": the one running here or at RAY_ADDRESS), or on the
+    instance this process has started already (``ray.init``). Paths must read and write the
+    same files on every node."""
 
     def __init__(self, address, count=None):
         try:
@@ -522,7 +524,9 @@ class RayPool:
             ray.init(address=address, log_to_driver=False)
         self.lost = ray.exceptions.RayActorError
         self.progress = Queue()
-        count = count or max(1, int(ray.cluster_resources().get("CPU", 1)))
+        # No more actors than CPUs: one that waits for a CPU would hold its pair forever.
+        cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        count = min(count or cpus, cpus)
         actor = ray.remote(num_cpus=1, max_restarts=-1)(RayWorker)
         self.slots = [actor.remote(self.progress.put) for _ in range(count)]
 

@@ -1,0 +1,158 @@
+"""Throughput of ``minretarget batch``: 1 and 2 local workers, the overhead per pair, Ray.
+
+    python benchmarks/batch.py [--quick] [--repeats N] [--json OUT.json]
+
+The job: the shipped sample's source (CMU walk 08_01, 2048-point clouds) played forward and
+backward, tiled to 300 frames (--quick: its 68 frames), onto its target and three stretched
+copies of it: 2 sources x 4 targets = 8 pairs, written as npz and bvh. Measured, each batch
+started in this process (``batch.run_batch``) with every pair's frames counted:
+  * frames/s with 1 and 2 local workers, and ``scaling_2_workers``, their ratio;
+  * ``overhead_fraction``: the time a pair costs in the 1-worker batch beyond retargeting its
+    frames (wall / pairs minus the frames' time, measured in this process on a set-up,
+    compiled retargeter), over the wall time of one ``minretarget retarget`` process for one
+    pair (import, weights, target set-up and frames: what a shell loop pays per pair);
+  * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started here, not
+    timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
+Every process has one BLAS thread. Each time is the best of N runs (default 2): the least
+disturbed by other work. The machine's load average is recorded before and after: on a
+shared machine the figures are noisy.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from minretarget import batch
+from minretarget.atomic import atomic_write
+from minretarget.cli import int_at_least, load_retargeter, retarget_to_files, set_target
+from minretarget.formats.mesh import write_mesh
+from minretarget.sources import SAMPLE, load_sample, open_source
+from minretarget.units import CANONICAL
+
+FORMATS = ["npz", "bvh"]
+STRETCH = {"base": (1.0, 1.0, 1.0), "tall": (1.0, 1.12, 1.0), "short": (0.95, 0.88, 0.95),
+           "wide": (1.15, 1.0, 1.2)}      # target name -> (x, y, z) scale of the sample's
+
+
+def make_job(folder, frames):
+    """Write the job's sources, targets and ``job.json`` into ``folder``; returns the job."""
+    with np.load(SAMPLE, allow_pickle=False) as data:
+        clouds = data["source_points"].astype(np.float32)                    # (T, P, 3)
+        points, faces = data["target_points"], data["target_faces"]
+    loop = np.concatenate([clouds, clouds[::-1]])                            # (2T, P, 3)
+    tiled = np.resize(loop, (frames,) + clouds.shape[1:])                     # (frames, P, 3)
+    np.save(folder / "walk.npy", tiled)
+    np.save(folder / "walk_back.npy", tiled[::-1].copy())
+    for name, scale in STRETCH.items():
+        write_mesh(folder / f"{name}.ply", points * scale, faces)
+    job = folder / "job.json"
+    job.write_text(json.dumps({"sources": ["walk.npy", "walk_back.npy"],
+                               "targets": [f"{name}.ply" for name in STRETCH],
+                               "options": {"format": FORMATS}}))
+    return job
+
+
+def files(folder):
+    """{relative path: bytes} of a batch's outputs (its markers and summary aside)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(Path(folder).rglob("*"))
+            if p.is_file() and p.name not in (batch.SUMMARY, batch.DONE)}
+
+
+def best(repeats, run):
+    """The least seconds of ``repeats`` calls of ``run(index)`` (which returns seconds)."""
+    return min(run(index) for index in range(repeats))
+
+
+def single_run_seconds(folder, out):
+    """Wall time of one `minretarget retarget` process for the first pair."""
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "minretarget", "retarget", str(folder / "walk.npy"),
+                    str(folder / "base.ply"), "--out", str(out), "--format", ",".join(FORMATS)],
+                   check=True, capture_output=True,
+                   env={**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
+    return time.perf_counter() - start
+
+
+def frames_seconds(folder, out):
+    """Seconds to retarget and write the first pair's frames, the retargeter set up (call it
+    twice: the first call compiles the kernels)."""
+    retargeter = load_retargeter()
+    points, faces, _ = load_sample()[1:]
+    set_target(retargeter, points, faces, "base")
+    start = time.perf_counter()
+    retarget_to_files(retargeter, lambda first: open_source(folder / "walk.npy", CANONICAL,
+                                                            start=first),
+                      out, FORMATS, CANONICAL, {"points": None, "seed": 0}, progress=False)
+    return time.perf_counter() - start
+
+
+def run(quick, repeats):
+    import ray
+
+    results = {"quick": quick, "repeats": repeats, "load_average_before": os.getloadavg(),
+               "cpus": os.cpu_count()}
+    with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
+        folder = Path(temporary)
+        job = make_job(folder, 68 if quick else 300)
+        summaries = {}
+
+        def batch_seconds(name, **settings):
+            def timed(index):
+                summaries[name] = batch.run_batch(job, folder / f"{name}_{index}",
+                                                  progress=False, **settings)
+                assert summaries[name]["done"] == 8, summaries[name]
+                return summaries[name]["seconds"]
+            return best(repeats, timed)
+
+        local_1 = batch_seconds("local_1", workers=1)
+        local_2 = batch_seconds("local_2", workers=2)
+        single = best(repeats, lambda index: single_run_seconds(folder, folder / f"single_{index}"))
+        frames = best(repeats + 1, lambda index: frames_seconds(folder, folder / f"frames_{index}"))
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+                 _node_ip_address="127.0.0.1")
+        try:
+            on_ray = batch_seconds("ray", workers=2, ray="auto")
+        finally:
+            ray.shutdown()
+        pairs, total = len(summaries["local_1"]["pairs"]), summaries["local_1"]["frames"]
+        results.update(
+            pairs=pairs, frames_per_pair=total // pairs,
+            frames_per_second_1_worker=total / local_1,
+            frames_per_second_2_workers=total / local_2,
+            scaling_2_workers=local_1 / local_2,
+            batch_seconds={"1_worker": local_1, "2_workers": local_2, "ray_2_actors": on_ray},
+            single_run_seconds=single, frames_seconds_per_pair=frames,
+            overhead_seconds_per_pair=local_1 / pairs - frames,
+            overhead_fraction=(local_1 / pairs - frames) / single,
+            single_run_overhead_fraction=(single - frames) / single,
+            ray_overhead_fraction=on_ray / local_2 - 1,
+            ray_identical=files(folder / "ray_0") == files(folder / "local_2_0"),
+            local_identical=files(folder / "local_1_0") == files(folder / "local_2_0"),
+            load_average_after=os.getloadavg())
+    return results
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="68-frame pairs, not 300")
+    parser.add_argument("--repeats", type=int_at_least(1), default=2,
+                        help="runs of each setting, the best kept (default 2)")
+    parser.add_argument("--json", default=None, help="write the results to this file")
+    args = parser.parse_args()
+    results = run(args.quick, args.repeats)
+    text = json.dumps(results, indent=2)
+    print(text)
+    if args.json:
+        with atomic_write(args.json) as file:
+            file.write(text.encode())
+
+
+if __name__ == "__main__":
+    main()
