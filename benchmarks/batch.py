@@ -14,12 +14,14 @@ started in this process (``batch.run_batch``) with every pair's frames counted:
   * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started here, not
     timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
 Every process has one BLAS thread. Each time is the best of N runs (default 2): the least
-disturbed by other work. The machine's load average is recorded before and after: on a
-shared machine the figures are noisy.
+disturbed by other work. On a shared machine the figures are noisy: the load average is
+recorded before and after, and for each batch run the cores that other users' processes kept
+busy meanwhile (``other_users_cores_busy``, local runs only, from /proc/stat: Linux only).
 """
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -65,6 +67,16 @@ def files(folder):
             if p.is_file() and p.name not in (batch.SUMMARY, batch.DONE)}
 
 
+def busy_seconds():
+    """(CPU seconds of the whole machine, of this process and its waited-for children) so
+    far: their difference over a run is the other users' work."""
+    with open("/proc/stat") as stat:
+        user, nice, system, _, _, irq, softirq, steal = map(int, stat.readline().split()[1:9])
+    ours = sum(getattr(resource.getrusage(who), field) for who in (resource.RUSAGE_SELF,
+               resource.RUSAGE_CHILDREN) for field in ("ru_utime", "ru_stime"))
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK"), ours
+
+
 def best(repeats, run):
     """The least seconds of ``repeats`` calls of ``run(index)`` (which returns seconds)."""
     return min(run(index) for index in range(repeats))
@@ -101,14 +113,18 @@ def run(quick, repeats):
     with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
         folder = Path(temporary)
         job = make_job(folder, 68 if quick else 300)
-        summaries = {}
+        summaries, others = {}, {}
 
         def batch_seconds(name, **settings):
             def timed(index):
-                summaries[name] = batch.run_batch(job, folder / f"{name}_{index}",
-                                                  progress=False, **settings)
-                assert summaries[name]["done"] == 8, summaries[name]
-                return summaries[name]["seconds"]
+                machine, ours = busy_seconds()
+                summaries[name] = summary = batch.run_batch(job, folder / f"{name}_{index}",
+                                                            progress=False, **settings)
+                assert summary["done"] == 8, summary
+                machine, ours = np.subtract(busy_seconds(), (machine, ours))
+                if "ray" not in settings:        # Ray's workers are not this process's children
+                    others.setdefault(name, []).append((machine - ours) / summary["seconds"])
+                return summary["seconds"]
             return best(repeats, timed)
 
         local_1 = batch_seconds("local_1", workers=1)
@@ -135,7 +151,7 @@ def run(quick, repeats):
             ray_overhead_fraction=on_ray / local_2 - 1,
             ray_identical=files(folder / "ray_0") == files(folder / "local_2_0"),
             local_identical=files(folder / "local_1_0") == files(folder / "local_2_0"),
-            load_average_after=os.getloadavg())
+            other_users_cores_busy=others, load_average_after=os.getloadavg())
     return results
 
 

@@ -184,14 +184,14 @@ def _expand(entries, key, base, problems):
         if not isinstance(entry, str):
             problems.append(f"{key}: {entry!r} is not a path")
             continue
-        pattern = base / entry
-        if glob.has_magic(entry):
+        pattern, is_glob = base / entry, any(c in entry for c in "*?[")
+        if is_glob:
             paths = [Path(p) for p in sorted(glob.glob(str(pattern), recursive=True))]
         else:
             paths = [pattern] if pattern.exists() else []
         if not paths:
-            problems.append(f"{key}: {entry}: " + ("matches nothing" if glob.has_magic(entry)
-                                                   else "no such file or folder"))
+            problems.append(f"{key}: {entry}: " + ("matches nothing" if is_glob else
+                                                   "no such file or folder"))
         for path in paths:
             name = _name(path)
             if name in found and found[name] != path.resolve():
@@ -259,12 +259,18 @@ def read_job(path, out_dir):
     listed = _pairs(job.get("pairs"), sources, targets, options, problems)
     if problems:          # reading files under options that do not parse would only add noise
         raise JobError(path, problems)
+    listed = [(s, t, o if o["weights"] is None else {**o, "weights": str(base / o["weights"])})
+              for s, t, o in listed]
+    pairs = _read_files(listed, sources, targets, out_dir, problems)
+    if problems:
+        raise JobError(path, list(dict.fromkeys(problems)))
+    return sorted(pairs, key=lambda pair: -pair.frames)
 
-    def weights_path(options):
-        weights = options["weights"]
-        return options if weights is None else {**options, "weights": str(base / weights)}
 
-    listed = [(s, t, weights_path(o)) for s, t, o in listed]
+def _read_files(listed, sources, targets, out_dir, problems):
+    """[Pair] of the (source name, target name, options) ``listed`` whose weights load, whose
+    source opens and whose target reads (each read once per units and axes); the others'
+    problems are added to ``problems``."""
     for weights in dict.fromkeys(o["weights"] for _, _, o in listed):
         try:
             load_weights(weights)
@@ -292,9 +298,7 @@ def read_job(path, out_dir):
             name = f"{target}/{source}"
             pairs.append(Pair(name, str(sources[source]), str(targets[target]), options,
                               counts[key], str(out_dir / name)))
-    if problems:
-        raise JobError(path, list(dict.fromkeys(problems)))
-    return sorted(pairs, key=lambda pair: -pair.frames)
+    return pairs
 
 
 # --- a worker: one process (or Ray actor), pairs one after another ---------------------------
