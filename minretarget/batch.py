@@ -31,12 +31,14 @@ command exits with status 0 only if every pair is done.
 """
 import argparse
 import concurrent.futures
+import ctypes
 import glob
 import hashlib
 import json
 import multiprocessing
 import os
 import queue
+import signal
 import sys
 import time
 import warnings
@@ -317,6 +319,15 @@ def start_worker(report=None):
     _REPORT[0] = report
 
 
+def start_local_worker(report):
+    """``start_worker`` in a process of the local pool, which on Linux the kernel kills when
+    the batch process dies: a killed batch leaves no worker writing into a pair that a
+    ``--resume`` runs again."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)       # PR_SET_PDEATHSIG
+    start_worker(report)
+
+
 def _content_hash(*arrays):
     digest = hashlib.sha256()
     for array in arrays:
@@ -476,7 +487,7 @@ class LocalPool:
 
     def _executor(self):
         return concurrent.futures.ProcessPoolExecutor(
-            len(self.slots), mp_context=self.context, initializer=start_worker,
+            len(self.slots), mp_context=self.context, initializer=start_local_worker,
             initargs=(self.progress.put,))
 
     def submit(self, slot, pair):
@@ -501,12 +512,15 @@ class LocalPool:
 
 
 class RayWorker:
-    """A Ray actor (``ray.remote(RayWorker)``): a worker that keeps its weights and targets."""
+    """A Ray actor (``ray.remote(RayWorker)``): a worker that keeps its weights and targets.
+    Progress goes with each call, not to the constructor: Ray keeps a restarted actor's
+    constructor arguments in its object store, where they may be lost."""
 
-    def __init__(self, report):
-        start_worker(report)
+    def __init__(self):
+        start_worker()
 
-    def run(self, pair):
+    def run(self, pair, report):
+        _REPORT[0] = report
         return run_pair(pair)
 
 
@@ -532,10 +546,10 @@ class RayPool:
         cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         count = min(count or cpus, cpus)
         actor = ray.remote(num_cpus=1, max_restarts=-1)(RayWorker)
-        self.slots = [actor.remote(self.progress.put) for _ in range(count)]
+        self.slots = [actor.remote() for _ in range(count)]
 
     def submit(self, actor, pair):
-        return actor.run.remote(pair).future()
+        return actor.run.remote(pair, self.progress.put).future()
 
     def drain(self):
         return self.progress.get_nowait_batch(self.progress.qsize())

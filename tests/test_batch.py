@@ -189,9 +189,13 @@ def test_a_killed_batch_resumes_without_redoing_finished_pairs(library, local_ru
     out = tmp_path / "out"
     process = start_batch(write_job(library), out, "--workers", "1")
     wait_for(out / "wide" / "long" / "frame_000040.ply", process)     # slim/long is done
-    for pid in worker_pids(process.pid) + [process.pid]:
-        os.kill(pid, signal.SIGKILL)
+    workers = worker_pids(process.pid)
+    process.kill()
     process.communicate(timeout=60)
+    deadline = time.monotonic() + 10                  # its workers die with it
+    while any(Path(f"/proc/{pid}").exists() for pid in workers):
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
     finished = (out / "slim" / "long" / batch.DONE).stat().st_mtime_ns
     summary = batch.run_batch(write_job(library), out, workers=1, resume=True, progress=False)
     assert files(out) == files(local_run[0])
