@@ -602,10 +602,10 @@ def run_batch(job, out_dir, workers=None, ray=None, resume=False, progress=True)
     if problems:
         raise JobError(job, problems)
     todo = [pair for pair in pairs if pair.name not in done]
+    tqdm = require("tqdm", "the progress bar").tqdm
     local = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     pool = (RayPool(ray, workers) if ray else LocalPool(max(1, min(workers or local,
                                                                    len(todo)))))
-    tqdm = require("tqdm", "the progress bar").tqdm
     bar = tqdm(total=sum(pair.frames for pair in todo), unit="frame", desc="batch",
                disable=not progress, file=sys.stderr)
     shown, entries = Counter(), dict(done)
