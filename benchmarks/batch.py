@@ -13,10 +13,11 @@ started in this process (``batch.run_batch``) with every pair's frames counted:
     pair (import, weights, target set-up and frames: what a shell loop pays per pair);
   * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started here, not
     timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
-Every process has one BLAS thread. Each time is the best of N runs (default 2): the least
-disturbed by other work. On a shared machine the figures are noisy: the load average is
-recorded before and after, and for each batch run the cores that other users' processes kept
-busy meanwhile (``other_users_cores_busy``, local runs only, from /proc/stat: Linux only).
+Every process has one BLAS thread. Each time is the best of N runs (default 2), the settings
+taking turns: the least disturbed by other work. On a shared machine the figures are noisy:
+the load average is recorded before and after, and for each batch run the cores that other
+users' processes kept busy meanwhile (``other_users_cores_busy``, local runs only, from
+/proc/stat: Linux only).
 """
 import argparse
 import json
@@ -77,11 +78,6 @@ def busy_seconds():
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK"), ours
 
 
-def best(repeats, run):
-    """The least seconds of ``repeats`` calls of ``run(index)`` (which returns seconds)."""
-    return min(run(index) for index in range(repeats))
-
-
 def single_run_seconds(folder, out):
     """Wall time of one `minretarget retarget` process for the first pair."""
     start = time.perf_counter()
@@ -93,8 +89,8 @@ def single_run_seconds(folder, out):
 
 
 def frames_seconds(folder, out):
-    """Seconds to retarget and write the first pair's frames, the retargeter set up (call it
-    twice: the first call compiles the kernels)."""
+    """Seconds to retarget and write the first pair's frames, the retargeter set up (the
+    first call in a process also compiles the kernels)."""
     retargeter = load_retargeter()
     points, faces, _ = load_sample()[1:]
     set_target(retargeter, points, faces, "base")
@@ -110,48 +106,49 @@ def run(quick, repeats):
 
     results = {"quick": quick, "repeats": repeats, "load_average_before": os.getloadavg(),
                "cpus": os.cpu_count()}
-    with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
-        folder = Path(temporary)
-        job = make_job(folder, 68 if quick else 300)
-        summaries, others = {}, {}
-
-        def batch_seconds(name, **settings):
-            def timed(index):
-                machine, ours = busy_seconds()
-                summaries[name] = summary = batch.run_batch(job, folder / f"{name}_{index}",
-                                                            progress=False, **settings)
-                assert summary["done"] == 8, summary
-                machine, ours = np.subtract(busy_seconds(), (machine, ours))
-                if "ray" not in settings:        # Ray's workers are not this process's children
-                    others.setdefault(name, []).append((machine - ours) / summary["seconds"])
-                return summary["seconds"]
-            return best(repeats, timed)
-
-        local_1 = batch_seconds("local_1", workers=1)
-        local_2 = batch_seconds("local_2", workers=2)
-        single = best(repeats, lambda index: single_run_seconds(folder, folder / f"single_{index}"))
-        frames = best(repeats + 1, lambda index: frames_seconds(folder, folder / f"frames_{index}"))
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-                 _node_ip_address="127.0.0.1")
-        try:
-            on_ray = batch_seconds("ray", workers=2, ray="auto")
-        finally:
-            ray.shutdown()
-        pairs, total = len(summaries["local_1"]["pairs"]), summaries["local_1"]["frames"]
-        results.update(
-            pairs=pairs, frames_per_pair=total // pairs,
-            frames_per_second_1_worker=total / local_1,
-            frames_per_second_2_workers=total / local_2,
-            scaling_2_workers=local_1 / local_2,
-            batch_seconds={"1_worker": local_1, "2_workers": local_2, "ray_2_actors": on_ray},
-            single_run_seconds=single, frames_seconds_per_pair=frames,
-            overhead_seconds_per_pair=local_1 / pairs - frames,
-            overhead_fraction=(local_1 / pairs - frames) / single,
-            single_run_overhead_fraction=(single - frames) / single,
-            ray_overhead_fraction=on_ray / local_2 - 1,
-            ray_identical=files(folder / "ray_0") == files(folder / "local_2_0"),
-            local_identical=files(folder / "local_1_0") == files(folder / "local_2_0"),
-            other_users_cores_busy=others, load_average_after=os.getloadavg())
+    length, pairs = (68 if quick else 300), 8                    # frames per pair, pairs
+    # First: Ray's idle processes then run alongside every measurement alike.
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+             _node_ip_address="127.0.0.1")
+    settings = {"local_1": {"workers": 1}, "local_2": {"workers": 2},
+                "ray_2": {"workers": 2, "ray": "auto"}}
+    seconds = {name: [] for name in [*settings, "single", "frames"]}
+    others = {"local_1": [], "local_2": []}        # Ray's workers are not this process's children
+    try:
+        with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
+            folder = Path(temporary)
+            job = make_job(folder, length)
+            frames_seconds(folder, folder / "compile")
+            for index in range(repeats):   # interleaved: a change of load touches every setting
+                for name, options in settings.items():
+                    machine, ours = busy_seconds()
+                    summary = batch.run_batch(job, folder / f"{name}_{index}", progress=False,
+                                              **options)
+                    assert summary["done"] == pairs, summary
+                    machine, ours = np.subtract(busy_seconds(), (machine, ours))
+                    seconds[name].append(summary["seconds"])
+                    if name in others:
+                        others[name].append((machine - ours) / summary["seconds"])
+                seconds["single"].append(single_run_seconds(folder, folder / f"single_{index}"))
+                seconds["frames"].append(frames_seconds(folder, folder / f"frames_{index}"))
+            identical = {name: files(folder / f"{name}_0") == files(folder / "local_1_0")
+                         for name in ("local_2", "ray_2")}
+    finally:
+        ray.shutdown()
+    local_1, local_2, on_ray, single, frames = (min(seconds[name]) for name in seconds)
+    total = pairs * length
+    results.update(
+        pairs=pairs, frames_per_pair=length,
+        frames_per_second_1_worker=total / local_1,
+        frames_per_second_2_workers=total / local_2,
+        scaling_2_workers=local_1 / local_2,
+        seconds=seconds, single_run_seconds=single, frames_seconds_per_pair=frames,
+        overhead_seconds_per_pair=local_1 / pairs - frames,
+        overhead_fraction=(local_1 / pairs - frames) / single,
+        single_run_overhead_fraction=(single - frames) / single,
+        ray_overhead_fraction=on_ray / local_2 - 1,
+        ray_identical=identical["ray_2"], local_identical=identical["local_2"],
+        other_users_cores_busy=others, load_average_after=os.getloadavg())
     return results
 
 
