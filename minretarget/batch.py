@@ -47,6 +47,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from .atomic import atomic_write
@@ -314,7 +315,6 @@ def start_worker(report=None):
     """Set up a worker process: one BLAS and one numba thread (the cores go to the workers),
     and where progress goes (``report((pair name, frames done))``)."""
     require("threadpoolctl", "minretarget batch").threadpool_limits(1)
-    import numba
     numba.set_num_threads(1)
     _REPORT[0] = report
 
@@ -329,6 +329,7 @@ def start_local_worker(report):
 
 
 def _content_hash(*arrays):
+    """Hex SHA-256 of arrays' bytes (and None's), to know a target by its content."""
     digest = hashlib.sha256()
     for array in arrays:
         digest.update(b"none" if array is None else np.ascontiguousarray(array).tobytes())
