@@ -387,6 +387,11 @@ def spec(pair):
             "options": json.loads(json.dumps(pair.options))}
 
 
+def _entry(pair, status, **fields):
+    """A pair's summary entry (``run_pair``)."""
+    return {"pair": pair.name, **spec(pair), "frames": pair.frames, "status": status, **fields}
+
+
 def run_pair(pair):
     """Run one pair into its folder and mark it done (module docstring); never raises for
     the pair's own faults (a stop, Ctrl-C, raises KeyboardInterrupt after a checkpoint).
@@ -397,8 +402,7 @@ def run_pair(pair):
         "error" when failed}.
     """
     start = time.perf_counter()
-    entry = {"pair": pair.name, **spec(pair), "frames": pair.frames, "status": "done",
-             "outputs": output_names(pair.options["format"], pair.frames)}
+    entry = _entry(pair, "done", outputs=output_names(pair.options["format"], pair.frames))
     options, folder = pair.options, Path(pair.folder)
     space = make_space(options["units"], options["up_axis"])
 
@@ -432,11 +436,6 @@ def run_pair(pair):
 
 # --- the pools: local processes or Ray actors, pairs handed out as workers free up ----------
 
-def _failed(pair, error):
-    return {"pair": pair.name, **spec(pair), "frames": pair.frames, "status": "failed",
-            "outputs": [], "error": error}
-
-
 def schedule(pairs, slots, submit, lost, drain):
     """Run ``pairs`` in order, one at a time on each of ``slots``; yield their summary
     entries (with ``attempts``) as they end.
@@ -467,9 +466,11 @@ def schedule(pairs, slots, submit, lost, drain):
                 if tries[pair.name] < ATTEMPTS:
                     waiting.insert(0, pair)
                     continue
-                entry = _failed(pair, f"its worker died {ATTEMPTS} times ({error})")
+                entry = _entry(pair, "failed", outputs=[],
+                               error=f"its worker died {ATTEMPTS} times ({error})")
             except Exception as error:  # noqa: BLE001  (e.g. a result that did not pickle)
-                entry = _failed(pair, f"internal error: {type(error).__name__}: {error}")
+                entry = _entry(pair, "failed", outputs=[],
+                               error=f"internal error: {type(error).__name__}: {error}")
             yield {**entry, "attempts": tries[pair.name]}
 
 
@@ -639,8 +640,7 @@ def _summary(pairs, entries, pool, seconds):
     """The batch's summary: totals over the pairs run now, and every pair's entry."""
     ran = [e for e in entries.values() if e["status"] == "done" and not e.get("skipped")]
     frames = sum(e["frames"] for e in ran)
-    listed = [entries.get(p.name) or {"pair": p.name, **spec(p), "frames": p.frames,
-                                      "status": "not run"} for p in pairs]
+    listed = [entries.get(p.name) or _entry(p, "not run") for p in pairs]
     statuses = Counter(e["status"] for e in listed)
     return {"engine": "ray" if isinstance(pool, RayPool) else "local",
             "workers": len(pool.slots), "seconds": round(seconds, 3), "frames": frames,
