@@ -317,3 +317,22 @@ def rest_pose_reference(directions, tpose, source_lengths):
         out.append(out[PARENTS[c]] + _unit(bones[b] / target_lengths[b] + turn[b])
                    * target_lengths[b])
     return np.array(out)
+
+
+def body_model_pose(model, rest, tpose, rotations, joints):
+    """The source fit's posed model (minretarget.fit.pose_model) with dense weights:
+    points (Q, 3), unit normals (Q, 3), lever (Q, J, 3), reach (Q, J)."""
+    weights = np.zeros((len(rest), len(PARENTS)))
+    np.add.at(weights, (np.arange(len(rest))[:, None], model.bone_index), model.bone_weight)
+    below = np.eye(len(PARENTS))                  # below[k, j]: k is j or a descendant of j
+    for k in range(len(PARENTS)):
+        j = PARENTS[k]
+        while j >= 0:
+            below[k, j] = 1.0
+            j = PARENTS[j]
+    by_bone = np.einsum("kab,qkb->qka", rotations, rest[:, None] - tpose[None]) + joints[None]
+    points = np.einsum("qk,qka->qa", weights, by_bone)
+    normals = np.einsum("qk,kab,qb->qa", weights, rotations, model.normals)
+    reach = weights @ below
+    lever = np.einsum("qk,qka,kj->qja", weights, by_bone, below) - reach[:, :, None] * joints
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True), lever, reach

@@ -1,0 +1,440 @@
+"""Stage 1e, the source fit: track one calibrated body in every source cloud.
+
+SKR reads each cloud on its own: it has no memory of which leg is which, no fixed bone
+lengths, and no notion that a bone lies inside the cloud. A body model has all three. The fit
+poses a linear body model (``BodyModel``: Q surface points and the 22 joints, both linear in K
+shape coefficients, posed by FK and linear blend skinning with fixed weights) so that its
+surface meets the cloud, frame after frame, and hands on the model's joints:
+
+1. Shape. The first ``calibration_frames`` frames calibrate the shape coefficients (for a
+   fixed pose the posed points are linear in them: one Gauss-Newton step on every frame kept
+   so far, after each frame's pose); then they are kept, so bone lengths are constant over a
+   stream by construction.
+2. Pose. ``iterations`` Gauss-Newton steps (damped, each joint's turn capped) on the root
+   translation and one world-frame rotation vector per joint (which turns the joint's subtree
+   about it), minimising robust (Geman-McClure) point-to-plane distances from each cloud
+   point to its nearest model point and, weaker, from each model point to its nearest cloud
+   point, plus pulls of the joints towards SKR's reading and towards the last two frames'
+   motion continued.
+3. Starts. A frame starts from the last frame's pose, so left and right carry over. When that
+   fit and SKR's reading disagree, the frame is also fitted from the reading's pose (the
+   analytic bone alignment of the model onto it), and the fit that meets the cloud better wins:
+   a lost track recovers, a leg never passes through empty space to follow the reading.
+
+Lengths are metres; the solver works in float64.
+"""
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ._jit import kernel
+from .analytic import analytic_rotations
+from .conventions import NUM_JOINTS, PARENTS
+from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
+                         quaternion_to_matrix)
+from .validation import as_float32_array
+
+BODY_MODEL = Path(__file__).with_name("data") / "body_model.npz"
+_PARENTS = np.asarray(PARENTS, dtype=np.int64)
+PARAMETERS = 3 + 3 * NUM_JOINTS      # root translation, then one rotation vector per joint
+MAX_TURN, MAX_SHIFT = 0.3, 0.1       # radians per joint, metres: the largest step taken
+TRUNCATE = 0.05                      # metres: the farthest a point counts in a fit's cost
+# Robust widths (metres) of the first frame's rounds and of the calibration frames' shape
+# steps: wide first, so that a body far from the mean is pulled in before it is fitted.
+CALIBRATION_WIDTHS = (0.2, 0.1, 0.07, 0.05, 0.03, 0.03, 0.03, 0.03)
+
+
+class BodyModel(NamedTuple):
+    """A linear body model in the canonical T-pose (``training.body_model`` makes it)."""
+    points: np.ndarray         # (Q, 3) float64 surface points of the mean body, metres
+    points_basis: np.ndarray   # (K, Q, 3) their change per unit shape coefficient
+    normals: np.ndarray        # (Q, 3) unit surface normals of the mean body
+    joints: np.ndarray         # (J, 3) joints of the mean body, metres
+    joints_basis: np.ndarray   # (K, J, 3)
+    bone_index: np.ndarray     # (Q, B) int64 the bones that move each point (padded with 0)
+    bone_weight: np.ndarray    # (Q, B) float64 their skinning weights (padded with 0), sum 1
+
+
+def load_body_model(path=None):
+    """Read and check a body model ``.npz`` (None: the shipped ``data/body_model.npz``)."""
+    path = BODY_MODEL if path is None else Path(path)
+    with np.load(path, allow_pickle=False) as data:
+        missing = set(BodyModel._fields) - set(data.files)
+        if missing:
+            raise ValueError(f"{path}: not a body model, missing {sorted(missing)}")
+        arrays = {key: data[key] for key in BodyModel._fields}
+    points = as_float32_array(arrays["points"], f"{path}: points", (None, 3))
+    count = len(points)
+    shapes = {"points_basis": (None, count, 3), "normals": (count, 3),
+              "joints": (NUM_JOINTS, 3), "joints_basis": (len(arrays["points_basis"]),
+                                                          NUM_JOINTS, 3),
+              "bone_index": (count, None), "bone_weight": (count, None)}
+    for key, shape in shapes.items():
+        as_float32_array(arrays[key], f"{path}: {key}", shape)
+    index, weight = arrays["bone_index"], arrays["bone_weight"]
+    if (index.shape != weight.shape or index.min() < 0 or index.max() >= NUM_JOINTS
+            or weight.min() < 0 or np.abs(weight.sum(axis=1) - 1).max() > 1e-3):
+        raise ValueError(f"{path}: bone_index and bone_weight must pair joints 0..21 with "
+                         "weights >= 0 summing to 1 per point")
+    return BodyModel(*(np.ascontiguousarray(arrays[key], np.int64 if key == "bone_index"
+                                            else np.float64) for key in BodyModel._fields))
+
+
+class FitSettings(NamedTuple):
+    """How the fit runs; the defaults are the shipped choice (docs/source_fit.md)."""
+    iterations: int = 4            # Gauss-Newton steps per start per frame
+    cloud_points: int = 1024       # cloud points used per frame (a seeded random subset)
+    robust_width: float = 0.03     # metres: distances well past it count little
+    model_to_cloud: float = 0.5    # weight of model -> cloud beside cloud -> model
+    reading_pull: float = 0.005    # weight of the joints' pull towards SKR's reading
+    motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
+    reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
+                                   # (mean over joints) is tried again from the reading
+    calibration_frames: int = 15   # frames whose clouds calibrate the shape
+
+
+class FitState(NamedTuple):
+    """What the fit carries from frame to frame (arrays float64)."""
+    frames: int                 # frames fitted so far
+    shape: np.ndarray           # (K,) shape coefficients
+    local: np.ndarray           # (J, 3, 3) the last frame's local rotations
+    root: np.ndarray            # (3,) its pelvis position, metres
+    joints: np.ndarray          # (2, J, 3) the last two frames' joints (older first)
+    calibration: tuple          # ((cloud (P, 3), local, root), ...) of the calibration frames
+
+
+# ----------------------------------------------------------------------------- kernels
+
+@kernel
+def _forward_kernel(local, root, tpose, parents, rotations, joints):
+    """FK with matrices: local (J, 3, 3), root (3,), tpose (J, 3) -> rotations, joints."""
+    rotations[0] = local[0]
+    joints[0] = root
+    for j in range(1, local.shape[0]):
+        p = parents[j]
+        rotations[j] = rotations[p] @ local[j]
+        joints[j] = joints[p] + rotations[p] @ (tpose[j] - tpose[p])
+
+
+@kernel
+def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
+                        parents, posed, posed_normals, lever, reach):
+    """LBS of the model's points, and each point's lever about each joint:
+    lever[q, j] = sum over the bones k at or below j of w_qk (bone k's move of q - joint j),
+    reach[q, j] = sum of those w_qk; turning joint j by d moves q by d x lever[q, j].
+    Written with scalar loops: numba's ``@`` on 3-vectors allocates and calls BLAS."""
+    lever[:] = 0.0
+    reach[:] = 0.0
+    for q in range(rest.shape[0]):
+        posed[q] = 0.0
+        posed_normals[q] = 0.0
+        for b in range(bone_index.shape[1]):
+            w = bone_weight[q, b]
+            if w == 0.0:
+                continue
+            k = bone_index[q, b]
+            for a in range(3):
+                moved = joints[k, a]
+                turned = 0.0
+                for c in range(3):
+                    moved += rotations[k, a, c] * (rest[q, c] - tpose[k, c])
+                    turned += rotations[k, a, c] * normals[q, c]
+                posed[q, a] += w * moved
+                posed_normals[q, a] += w * turned
+                j = k
+                while j >= 0:
+                    lever[q, j, a] += w * moved
+                    j = parents[j]
+            j = k
+            while j >= 0:
+                reach[q, j] += w
+                j = parents[j]
+        norm = np.sqrt(posed_normals[q, 0] ** 2 + posed_normals[q, 1] ** 2
+                       + posed_normals[q, 2] ** 2)
+        for a in range(3):
+            posed_normals[q, a] /= norm
+        for j in range(lever.shape[1]):
+            for a in range(3):
+                lever[q, j, a] -= reach[q, j] * joints[j, a]
+
+
+@kernel
+def _plane_rows_kernel(model_index, targets, weights, posed, posed_normals, lever, reach,
+                       rows, values):
+    """Weighted point-to-plane rows of the Gauss-Newton system, one per pair (model point,
+    target): row . step = the change of n . (x - y), value = n . (x - y), both times sqrt(w)."""
+    rows[:] = 0.0
+    for i in range(model_index.shape[0]):
+        q = model_index[i]
+        s = np.sqrt(weights[i])
+        n = posed_normals[q]
+        values[i] = s * np.sum(n * (posed[q] - targets[i]))
+        rows[i, 0:3] = s * n
+        for j in range(lever.shape[1]):
+            if reach[q, j] > 0.0:
+                a = lever[q, j]                       # d(n . x)/d(turn j) = a x n
+                rows[i, 3 + 3 * j] = s * (a[1] * n[2] - a[2] * n[1])
+                rows[i, 4 + 3 * j] = s * (a[2] * n[0] - a[0] * n[2])
+                rows[i, 5 + 3 * j] = s * (a[0] * n[1] - a[1] * n[0])
+
+
+@kernel
+def _apply_step_kernel(local, rotations, step, parents, out):
+    """Turn each joint's subtree by its world rotation vector: out[j] = R_p^T T_j R_p local[j]
+    (R_p the parent's world rotation), rounded back onto a rotation through a quaternion."""
+    turn, quaternion = np.empty((3, 3)), np.empty(4)
+    for j in range(local.shape[0]):
+        x, y, z = step[3 + 3 * j], step[4 + 3 * j], step[5 + 3 * j]
+        angle = np.sqrt(x * x + y * y + z * z)
+        half = 0.5 * angle
+        scale = np.sin(half) / angle if angle > 1e-12 else 0.5
+        quaternion[0], quaternion[1] = np.cos(half), scale * x
+        quaternion[2], quaternion[3] = scale * y, scale * z
+        _quaternion_to_matrix_one(quaternion, turn)
+        if j == 0:
+            moved = turn @ local[0]
+        else:
+            parent = rotations[parents[j]]
+            moved = parent.T @ (turn @ (parent @ local[j]))
+        _matrix_to_quaternion_one(moved, quaternion)
+        _quaternion_to_matrix_one(quaternion, out[j])
+
+
+# ----------------------------------------------------------------------------- posing
+
+def shaped(model, shape):
+    """(K,) shape coefficients -> T-pose surface points (Q, 3) and joints (J, 3), metres."""
+    return (model.points + np.tensordot(shape, model.points_basis, 1),
+            model.joints + np.tensordot(shape, model.joints_basis, 1))
+
+
+def forward(local, root, tpose_joints):
+    """local (J, 3, 3), root (3,), T-pose joints (J, 3) -> world rotations (J, 3, 3), joints
+    (J, 3)."""
+    rotations, joints = np.empty((NUM_JOINTS, 3, 3)), np.empty((NUM_JOINTS, 3))
+    _forward_kernel(local, root, tpose_joints, _PARENTS, rotations, joints)
+    return rotations, joints
+
+
+class Posed(NamedTuple):
+    points: np.ndarray      # (Q, 3) posed surface points, metres
+    normals: np.ndarray     # (Q, 3) their unit normals
+    lever: np.ndarray       # (Q, J, 3) see _pose_points_kernel
+    reach: np.ndarray       # (Q, J)
+
+
+def pose_model(model, rest, tpose_joints, rotations, joints):
+    """The model's points posed by LBS, with what their Jacobian needs (``Posed``)."""
+    count = len(rest)
+    posed = Posed(np.empty((count, 3)), np.empty((count, 3)),
+                  np.empty((count, NUM_JOINTS, 3)), np.empty((count, NUM_JOINTS)))
+    _pose_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, model.normals,
+                        rotations, joints, _PARENTS, *posed)
+    return posed
+
+
+def apply_step(local, root, rotations, step):
+    """A Gauss-Newton step (PARAMETERS,) applied: -> new local (J, 3, 3), root (3,)."""
+    new = np.empty_like(local)
+    _apply_step_kernel(local, rotations, step, _PARENTS, new)
+    return new, root + step[:3]
+
+
+def robust_weights(distances, width):
+    """Geman-McClure IRLS weights: 1 at 0, falling as (width / d)^4 far away."""
+    return 1.0 / np.square(1.0 + np.square(distances / width))
+
+
+def _clamped(step):
+    """``step`` with each joint's turn at most MAX_TURN and the root's shift at most MAX_SHIFT."""
+    step = step.copy()
+    step[:3] *= min(1.0, MAX_SHIFT / max(np.linalg.norm(step[:3]), 1e-12))
+    turns = step[3:].reshape(NUM_JOINTS, 3)
+    turns *= np.minimum(1.0, MAX_TURN / np.maximum(np.linalg.norm(turns, axis=1), 1e-12))[:, None]
+    return step
+
+
+# ----------------------------------------------------------------------------- one frame
+
+def surface_terms(posed, cloud, cloud_tree, settings):
+    """Both directions' nearest pairs -> (model index (N,), targets (N, 3), weights (N,))."""
+    _, nearest_model = cKDTree(posed.points).query(cloud)
+    distance_in = np.linalg.norm(posed.points[nearest_model] - cloud, axis=1)
+    distance_out, nearest_cloud = cloud_tree.query(posed.points)
+    weights = np.concatenate([
+        robust_weights(distance_in, settings.robust_width) / len(cloud),
+        settings.model_to_cloud * robust_weights(distance_out, settings.robust_width)
+        / len(posed.points)])
+    return (np.concatenate([nearest_model, np.arange(len(posed.points))]),
+            np.concatenate([cloud, cloud[nearest_cloud]]), weights)
+
+
+def joint_rows(joints, goal, weight):
+    """Rows of the pull of the joints (J, 3) towards ``goal`` (J, 3): (J * 3, PARAMETERS), (J * 3,)."""
+    scale = np.sqrt(weight / NUM_JOINTS)
+    rows = np.zeros((NUM_JOINTS, 3, PARAMETERS))
+    rows[:, :, :3] = np.eye(3)
+    for k in range(NUM_JOINTS):
+        j = PARENTS[k]
+        while j >= 0:                    # turning ancestor j by d moves k by d x (p_k - p_j)
+            a = joints[k] - joints[j]
+            rows[k, :, 3 + 3 * j:6 + 3 * j] = [[0, a[2], -a[1]], [-a[2], 0, a[0]],
+                                               [a[1], -a[0], 0]]
+            j = PARENTS[j]
+    return scale * rows.reshape(-1, PARAMETERS), scale * (joints - goal).ravel()
+
+
+def fit_pose(model, rest, tpose_joints, cloud, cloud_tree, local, root, settings, pulls=()):
+    """Gauss-Newton on one frame's pose.
+
+    Args:
+        rest, tpose_joints: the shaped model (``shaped``).
+        cloud: (P, 3) float64 points; cloud_tree: their cKDTree.
+        local, root: the start, (J, 3, 3) and (3,).
+        pulls: ((weight, goal joints (J, 3)), ...).
+    Returns:
+        local, root, joints (J, 3), cost (the mean truncated distance both ways, metres).
+    """
+    for _ in range(settings.iterations):
+        rotations, joints = forward(local, root, tpose_joints)
+        posed = pose_model(model, rest, tpose_joints, rotations, joints)
+        index, targets, weights = surface_terms(posed, cloud, cloud_tree, settings)
+        rows, values = np.empty((len(index), PARAMETERS)), np.empty(len(index))
+        _plane_rows_kernel(index, targets, weights, posed.points, posed.normals, posed.lever,
+                           posed.reach, rows, values)
+        hessian, gradient = rows.T @ rows, rows.T @ values
+        for weight, goal in pulls:
+            if weight:
+                extra_rows, extra_values = joint_rows(joints, goal, weight)
+                hessian += extra_rows.T @ extra_rows
+                gradient += extra_rows.T @ extra_values
+        hessian[np.diag_indices_from(hessian)] += 1e-3 * np.diag(hessian) + 1e-5
+        local, root = apply_step(local, root, rotations,
+                                 _clamped(-np.linalg.solve(hessian, gradient)))
+    rotations, joints = forward(local, root, tpose_joints)
+    posed = pose_model(model, rest, tpose_joints, rotations, joints)
+    return local, root, joints, fit_cost(posed.points, cloud, cloud_tree, settings)
+
+
+def fit_cost(points, cloud, cloud_tree, settings):
+    """Mean truncated nearest distance, cloud -> model plus model -> cloud (weighted)."""
+    distance_in, _ = cKDTree(points).query(cloud)
+    distance_out, _ = cloud_tree.query(points)
+    return float(np.mean(np.minimum(distance_in, TRUNCATE)) + settings.model_to_cloud
+                 * np.mean(np.minimum(distance_out, TRUNCATE)))
+
+
+def shape_jacobian(model, rotations):
+    """d(posed point)/d(shape) for a fixed pose and root: (Q, 3, K)."""
+    basis = model.joints_basis                                                # (K, J, 3)
+    moved = np.zeros_like(basis)              # each joint's move per coefficient, root fixed
+    for j in range(1, NUM_JOINTS):
+        p = PARENTS[j]
+        moved[:, j] = moved[:, p] + (basis[:, j] - basis[:, p]) @ rotations[p].T
+    bones, weights = model.bone_index, model.bone_weight                      # (Q, B)
+    offsets = model.points_basis[:, :, None] - basis[:, bones]               # (K, Q, B, 3)
+    by_bone = np.einsum("qbxy,kqby->kqbx", rotations[bones], offsets) + moved[:, bones]
+    return np.einsum("qb,kqbx->qxk", weights, by_bone)
+
+
+def fit_shape(model, shape, frames, settings, width):
+    """One Gauss-Newton step on the shape coefficients over frames ((cloud, local, root), ...)
+    at robust width ``width``; a faint ridge keeps unobserved coefficients near the mean."""
+    hessian = 1e-7 * np.eye(len(shape))
+    gradient = 1e-7 * shape
+    rest, tpose_joints = shaped(model, shape)
+    settings = settings._replace(robust_width=width)
+    for cloud, local, root in frames:
+        rotations, joints = forward(local, root, tpose_joints)
+        posed = pose_model(model, rest, tpose_joints, rotations, joints)
+        index, targets, weights = surface_terms(posed, cloud, cKDTree(cloud), settings)
+        jacobian = shape_jacobian(model, rotations)[index]             # (N, 3, K)
+        normals = posed.normals[index]
+        along = np.einsum("na,nak->nk", normals, jacobian) * np.sqrt(weights)[:, None]
+        distance = np.einsum("na,na->n", normals, posed.points[index] - targets)
+        hessian += along.T @ along
+        gradient += along.T @ (distance * np.sqrt(weights))
+    return shape - np.linalg.solve(hessian, gradient)
+
+
+def local_from_joints(joints, tpose_joints):
+    """Local rotations (J, 3, 3) that pose the model's T-pose like ``joints`` (J, 3)
+    (``analytic.analytic_rotations``)."""
+    quaternions = analytic_rotations(joints.astype(np.float32), tpose_joints.astype(np.float32))
+    return quaternion_to_matrix(quaternions).astype(np.float64)
+
+
+def subsample(cloud, count, frame):
+    """``count`` points of a cloud (P, 3), drawn with the frame's index as seed -> float64."""
+    cloud = np.asarray(cloud, np.float64)
+    if len(cloud) <= count:
+        return cloud
+    return cloud[np.random.default_rng(frame).choice(len(cloud), count, replace=False)]
+
+
+def start_fit(model, settings, cloud, reading):
+    """The first frame: shape and pose in alternation, from the mean body on SKR's reading
+    -> FitState, joints (J, 3)."""
+    cloud, reading = subsample(cloud, settings.cloud_points, 0), np.asarray(reading, np.float64)
+    tree = cKDTree(cloud)
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose_joints = shaped(model, shape)
+    local, root = local_from_joints(reading, tpose_joints), reading[0].copy()
+    for width in CALIBRATION_WIDTHS:
+        local, root, _, _ = fit_pose(model, rest, tpose_joints, cloud, tree, local, root,
+                                     settings._replace(robust_width=width),
+                                     ((settings.reading_pull, reading),))
+        shape = fit_shape(model, shape, [(cloud, local, root)], settings, width)
+        rest, tpose_joints = shaped(model, shape)
+    local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, tree, local, root,
+                                      settings, ((settings.reading_pull, reading),))
+    state = FitState(1, shape, local, root, np.stack([joints, joints]),
+                     ((cloud, local, root),))
+    return state, joints
+
+
+def fit_frame(model, settings, state, cloud, reading):
+    """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
+    from SKR's reading won."""
+    t = state.frames
+    cloud, reading = subsample(cloud, settings.cloud_points, t), np.asarray(reading, np.float64)
+    tree = cKDTree(cloud)
+    rest, tpose_joints = shaped(model, state.shape)
+    before, last = state.joints
+    pulls = ((settings.reading_pull, reading), (settings.motion_pull, last + 0.5 * (last - before)))
+    local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, tree, state.local,
+                                         state.root, settings, pulls)
+    reseeded = False
+    if np.linalg.norm(joints - reading, axis=1).mean() > settings.reseed_distance:
+        fresh = fit_pose(model, rest, tpose_joints, cloud, tree,
+                         local_from_joints(reading, tpose_joints), reading[0].copy(), settings,
+                         pulls)
+        if fresh[3] < cost:
+            (local, root, joints, cost), reseeded = fresh, True
+    shape, calibration = state.shape, state.calibration
+    if t < settings.calibration_frames:
+        calibration = calibration + ((cloud, local, root),)
+        shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
+    elif calibration:
+        calibration = ()                 # calibrated: the clouds are no longer needed
+    return (FitState(t + 1, shape, local, root, np.stack([last, joints]), calibration),
+            joints, reseeded)
+
+
+def track(model, settings, clouds, readings):
+    """A whole stream, online (frame t sees frames <= t only): clouds (T, P, 3) (or any
+    iterable of (P, 3)), SKR's readings (T, J, 3) -> fitted joints (T, J, 3) float32, and
+    which frames the fit from the reading won (T,) bool."""
+    fitted, reseeded = [], []
+    state = None
+    for cloud, reading in zip(clouds, readings):
+        if state is None:
+            state, joints = start_fit(model, settings, cloud, reading)
+            won = True
+        else:
+            state, joints, won = fit_frame(model, settings, state, cloud, reading)
+        fitted.append(joints)
+        reseeded.append(won)
+    return np.asarray(fitted, np.float32), np.asarray(reseeded)

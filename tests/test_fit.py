@@ -1,0 +1,162 @@
+"""The source fit (minretarget.fit): kernels against NumPy twins and finite differences,
+rotations kept rotations, and fits that recover a known pose and shape."""
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from minretarget import fit
+from minretarget.conventions import NUM_JOINTS
+from minretarget.kinematics import quaternion_to_matrix
+
+import twins
+
+
+@pytest.fixture(scope="module")
+def model():
+    return fit.load_body_model()
+
+
+def random_local(rng, scale):
+    quaternions = np.concatenate([np.ones((NUM_JOINTS, 1)),
+                                  rng.normal(scale=scale, size=(NUM_JOINTS, 3))], axis=1)
+    return quaternion_to_matrix(quaternions).astype(np.float64)
+
+
+def posed_state(model, seed=0, turn=0.3):
+    """A shaped, posed model with rotations exactly on SO(3) (passed through apply_step)."""
+    rng = np.random.default_rng(seed)
+    shape = rng.normal(size=len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    local, root = random_local(rng, turn), np.array([0.1, 0.9, -0.2])
+    rotations, _ = fit.forward(local, root, tpose)
+    local, root = fit.apply_step(local, root, rotations, np.zeros(fit.PARAMETERS))
+    rotations, joints = fit.forward(local, root, tpose)
+    return shape, rest, tpose, local, root, rotations, joints
+
+
+def test_shipped_model_shapes_and_weights(model):
+    assert model.points.shape == model.normals.shape and model.joints.shape == (NUM_JOINTS, 3)
+    np.testing.assert_allclose(model.bone_weight.sum(axis=1), 1, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(model.normals, axis=1), 1, atol=1e-5)
+
+
+def test_forward_matches_twin(model):
+    _, _, tpose, local, root, rotations, joints = posed_state(model)
+    quaternions = np.stack([twins_quaternion(r) for r in local])
+    twin_joints, twin_rotations = twins.forward_kinematics(quaternions, root, tpose)
+    np.testing.assert_allclose(joints, twin_joints, atol=1e-6)
+    np.testing.assert_allclose(rotations, twin_rotations, atol=1e-6)
+
+
+def twins_quaternion(matrix):
+    """A rotation matrix -> (w, x, y, z), by the trace formula (rotations well away from pi)."""
+    w = np.sqrt(1 + np.trace(matrix)) / 2
+    return np.array([w, (matrix[2, 1] - matrix[1, 2]) / (4 * w),
+                     (matrix[0, 2] - matrix[2, 0]) / (4 * w), (matrix[1, 0] - matrix[0, 1]) / (4 * w)])
+
+
+def test_pose_model_matches_twin(model):
+    _, rest, tpose, _, _, rotations, joints = posed_state(model)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    for got, want in zip(posed, twins.body_model_pose(model, rest, tpose, rotations, joints)):
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def numeric_derivative(model, state, measure, eps=1e-6):
+    """d measure(local, root) / d step, by forward differences: (..., PARAMETERS)."""
+    _, rest, tpose, local, root, rotations, _ = state
+    base = measure(local, root)
+    columns = []
+    for n in range(fit.PARAMETERS):
+        step = np.zeros(fit.PARAMETERS)
+        step[n] = eps
+        columns.append((measure(*fit.apply_step(local, root, rotations, step)) - base) / eps)
+    return np.stack(columns, axis=-1)
+
+
+def test_plane_rows_are_the_derivative_of_the_plane_distance(model):
+    state = posed_state(model, seed=1)
+    _, rest, tpose, _, _, rotations, joints = state
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    rng = np.random.default_rng(2)
+    index = rng.integers(0, len(rest), 40)
+    targets = posed.points[index] + rng.normal(scale=0.01, size=(40, 3))
+    weights = rng.uniform(0.5, 2.0, 40)
+    rows, values = np.empty((40, fit.PARAMETERS)), np.empty(40)
+    fit._plane_rows_kernel(index, targets, weights, posed.points, posed.normals, posed.lever,
+                           posed.reach, rows, values)
+    normals = posed.normals[index]
+
+    def plane_distance(local, root):
+        moved = fit.pose_model(model, rest, tpose, *fit.forward(local, root, tpose))
+        return np.sqrt(weights) * np.sum(normals * (moved.points[index] - targets), axis=1)
+
+    np.testing.assert_allclose(values, plane_distance(*state[3:5]), atol=1e-12)
+    np.testing.assert_allclose(rows, numeric_derivative(model, state, plane_distance), atol=2e-5)
+
+
+def test_joint_rows_are_the_derivative_of_the_joints(model):
+    state = posed_state(model, seed=3)
+    tpose, joints = state[2], state[6]
+    rows, values = fit.joint_rows(joints, joints + 0.01, weight=NUM_JOINTS)   # scale 1
+    np.testing.assert_allclose(values, -0.01)
+    numeric = numeric_derivative(model, state, lambda local, root:
+                                 fit.forward(local, root, tpose)[1].ravel())
+    np.testing.assert_allclose(rows, numeric, atol=2e-5)
+
+
+def test_shape_jacobian_is_the_derivative_of_the_posed_points(model):
+    shape, _, _, local, root, rotations, _ = posed_state(model, seed=4)
+
+    def posed_points(coefficients):
+        rest, tpose = fit.shaped(model, coefficients)
+        return fit.pose_model(model, rest, tpose, *fit.forward(local, root, tpose)).points
+
+    base, eps = posed_points(shape), 1e-6
+    numeric = np.stack([(posed_points(shape + eps * np.eye(len(shape))[k]) - base) / eps
+                        for k in range(len(shape))], axis=-1)
+    np.testing.assert_allclose(fit.shape_jacobian(model, rotations), numeric, atol=1e-7)
+
+
+def test_apply_step_keeps_rotations_and_zero_is_no_step(model):
+    _, _, _, local, root, rotations, _ = posed_state(model, seed=5)
+    same, same_root = fit.apply_step(local, root, rotations, np.zeros(fit.PARAMETERS))
+    np.testing.assert_allclose(same, local, atol=1e-12)
+    np.testing.assert_array_equal(same_root, root)
+    step = np.random.default_rng(6).normal(scale=0.5, size=fit.PARAMETERS)
+    moved, _ = fit.apply_step(local, root, rotations, step)
+    np.testing.assert_allclose(moved @ moved.transpose(0, 2, 1), np.broadcast_to(np.eye(3), moved.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(moved), 1, atol=1e-12)
+
+
+def test_fit_pose_recovers_a_pose_from_its_own_surface(model):
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=7, turn=0.2)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    start = fit.apply_step(local, root, rotations,
+                           np.random.default_rng(8).normal(scale=0.02, size=fit.PARAMETERS))
+    settings = fit.FitSettings(iterations=12, reading_pull=0, motion_pull=0)
+    *_, found, cost = fit.fit_pose(model, rest, tpose, cloud, cKDTree(cloud), *start, settings)
+    assert np.linalg.norm(found - joints, axis=1).mean() < 0.005
+    assert cost < 0.002
+
+
+def test_start_fit_calibrates_the_shape_from_one_cloud(model):
+    shape, rest, tpose, _, _, rotations, joints = posed_state(model, seed=9, turn=0.1)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    reading = joints + np.random.default_rng(10).normal(scale=0.02, size=joints.shape)
+    state, found = fit.start_fit(model, fit.FitSettings(), cloud, reading)
+    # one frame already takes a third off the reading's error and half off the mean body's
+    error = np.linalg.norm(found - joints, axis=1).mean()
+    assert error < 0.7 * np.linalg.norm(reading - joints, axis=1).mean()
+    calibrated = np.linalg.norm(fit.shaped(model, state.shape)[1] - tpose, axis=1).mean()
+    assert calibrated < 0.5 * np.linalg.norm(model.joints - tpose, axis=1).mean()
+
+
+def test_load_body_model_names_what_is_wrong(tmp_path, model):
+    arrays = model._asdict()
+    np.savez(tmp_path / "missing.npz", **{k: v for k, v in arrays.items() if k != "normals"})
+    with pytest.raises(ValueError, match="missing.*normals"):
+        fit.load_body_model(tmp_path / "missing.npz")
+    np.savez(tmp_path / "weights.npz", **{**arrays, "bone_weight": arrays["bone_weight"] * 2})
+    with pytest.raises(ValueError, match="summing to 1"):
+        fit.load_body_model(tmp_path / "weights.npz")
