@@ -39,6 +39,7 @@ from .conventions import NUM_JOINTS
 from .formats.npz import ARCHIVE_ERRORS, load_npz
 from .outputs import previous_outputs, remove_outputs
 from .smrm import MotionState, check_state
+from .units import CANONICAL
 from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
@@ -134,7 +135,8 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
                facing_check=True):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
-    kind, frame count and rate; its content is assumed unchanged), the target and weights
+    kind, frame count, rate, and units and up axis; its content is assumed unchanged), the
+    target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
     whether SKR also runs on the source's mirror images, whether its joints are refined,
@@ -143,6 +145,8 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
     never, so not recorded)."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
+            # Recorded only when not canonical, so runs from before it match their checkpoints.
+            **({"source_space": list(source.space)} if source.space != CANONICAL else {}),
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,

@@ -2,7 +2,9 @@
 
     minretarget demo [--out DIR] [--weights FILE]
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
-                         [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
+                         [--source-units m|cm|mm] [--source-up y|z] [--target-units ...]
+                         [--target-up ...] [--units ...] [--up-axis ...] [--force]
+                         [--out-units m|cm|mm] [--out-up y|z] [--points N] [--seed S]
                          [--weights FILE] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
                          [--no-facing-check]
@@ -10,14 +12,17 @@
     minretarget render RESULT --out FILE.png|FILE.gif
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
-axes: ``minretarget.units``. Needs the ``cli`` extra (``pip install "minretarget[cli]"``):
-without it the command says so instead of failing with a traceback. Bad input (a missing or
-malformed file, a wrong shape or value) is reported in one line naming the file (and frame),
-exit status 1; likely mistakes (units, up axis, not a T-pose) in ``minretarget: warning:``
-lines. An interrupted ``retarget`` keeps its complete frames and a checkpoint:
-``--resume`` finishes it with the same result as an uninterrupted run
-(``minretarget.checkpoint``); a run that fails before its first frame leaves the folder as
-it was. A fresh run refuses an output folder that holds another run's files unless
+axes: ``minretarget.units``. Each input's units and up axis, unless given, are told from its
+body's size and shape (``validation.guess_space``) and reported in one line; a body that is
+still not a person's size, or lies along its up axis, is refused before anything is written
+unless ``--force``. Outputs are in metres, +Y up, unless ``--out-units`` / ``--out-up``.
+Needs the ``cli`` extra (``pip install "minretarget[cli]"``): without it the command says so
+instead of failing with a traceback. Bad input (a missing or malformed file, a wrong shape or
+value) is reported in one line naming the file (and frame), exit status 1; likely mistakes
+(not a T-pose; units or up axis with ``--force``) in ``minretarget: warning:`` lines. An
+interrupted ``retarget`` keeps its complete frames and a checkpoint: ``--resume`` finishes
+it with the same result as an uninterrupted run (``minretarget.checkpoint``); a run that
+fails before its first frame leaves the folder as it was. A fresh run refuses an output folder that holds another run's files unless
 ``--overwrite``, which keeps them aside until the new run completes; the demo replaces only
 an earlier demo's.
 """
@@ -31,10 +36,13 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
                          abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
+from .conventions import MIN_POINTS
 from .extras import MissingExtra, require
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
                       previous_outputs)
@@ -42,8 +50,9 @@ from .render import render
 from .retargeter import Retargeter
 from .smoothing import Smoothing
 from .sources import load_sample, open_source, read_target
-from .units import CANONICAL, UNITS, UP_AXES, make_space
-from .validation import InputWarning, check_body
+from .units import CANONICAL, UNITS, UP_AXES, make_space, to_canonical
+from .validation import (UNIT_NAMES, InputWarning, TPoseWarning, body_problems, check_body,
+                         guess_space)
 from .weights import DEFAULT_WEIGHTS
 
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
@@ -73,7 +82,7 @@ def set_target(retargeter, points, faces, name, space=CANONICAL):
         retargeter.set_target(points, faces)
     except ValueError as error:
         raise ValueError(f"{name}: {error}") from None
-    check_body(points, name, space, tpose=True)
+    check_body(points, name, space, tpose=True, role="target")
 
 
 @contextlib.contextmanager
@@ -161,7 +170,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                 except ValueError as error:
                     raise ValueError(f"{source.frame_name(index)}: {error}") from None
                 if index == 0:
-                    check_body(data, source.frame_name(0), space)
+                    check_body(data, source.frame_name(0), source.space, role="source")
                 write(frame)
                 done, state = index + 1, retargeter.state
                 if stop_asked:
@@ -190,9 +199,43 @@ def _written(out_dir, formats, count):
     return f"{out_dir}: " + ", ".join(names)
 
 
+def file_space(points, name, role, units=None, up_axis=None, force=False, min_points=1):
+    """The units and up axis of one input file, told from its body where not given
+    (``validation.guess_space``), reported in one line on stdout.
+
+    Args:
+        points: (N, 3) the body's points or joints as in the file (a source: its frame 0).
+        name: the file (and frame), for messages; role: "source" or "target".
+        units, up_axis: given by the user, or None to guess.
+        force: go on (with a warning, later) when the body read in that space is still not
+            a person's size or lies along its up axis.
+        min_points: fewer points are refused as such (``conventions.MIN_POINTS`` for a
+            cloud).
+    Returns:
+        ``units.Space``.
+    Raises:
+        ValueError naming the file and the option to give, unless ``force``.
+    """
+    if len(points) < min_points:       # too few to tell: the count is what is wrong
+        raise ValueError(f"{name}: the {role} has {len(points)} points; at least "
+                         f"{min_points} are needed")
+    space = guess_space(points, units, up_axis)
+    canonical = to_canonical(points, space)
+    problems = [message for category, message in body_problems(canonical, name, space,
+                                                               role=role)
+                if category is not TPoseWarning]
+    if problems and not force:
+        raise ValueError(f"{'; '.join(problems)}; nothing written (--force goes on anyway)")
+    height = float(np.ptp(canonical[:, 1]))
+    print(f"{role}: {UNIT_NAMES[space.units]} ({'given' if units else 'detected'}), "
+          f"{space.up_axis.upper()} up ({'given' if up_axis else 'detected'}), "
+          f"body {height:.2f} m tall ({name})")
+    return space
+
+
 def _retarget(args):
     start = time.perf_counter()
-    space = make_space(args.units, args.up_axis)
+    space = make_space(args.out_units, args.out_up)
     formats = parse_formats(args.format)
     foot_lock = None if args.no_foot_lock else FootLock()
     if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
@@ -201,11 +244,21 @@ def _retarget(args):
                                  foot_lock, args.mirror_source, not args.no_refine,
                                  not args.no_denoise, not args.no_rest_pose,
                                  not args.no_facing_check)
-    target_points, target_faces = read_target(args.target, space)
-    set_target(retargeter, target_points, target_faces, args.target, space)
+    # Both files read as they are (the canonical space changes nothing), then in their own.
+    as_in_file, target_faces = read_target(args.target, CANONICAL)
+    target_space = file_space(as_in_file, args.target, "target", args.target_units or args.units,
+                              args.target_up or args.up_axis, args.force, MIN_POINTS)
+    set_target(retargeter, to_canonical(as_in_file, target_space), target_faces, args.target,
+               target_space)
+    raw = open_source(args.source, CANONICAL, fps=args.fps, points=args.points, seed=args.seed)
+    if raw.count == 0:
+        raise ValueError(f"{raw.path}: holds no frames")
+    source_space = file_space(next(iter(raw.frames)), raw.frame_name(0), "source",
+                              args.source_units or args.units, args.source_up or args.up_axis,
+                              args.force, MIN_POINTS if raw.kind == "points" else 1)
 
     def open_at(first):
-        return open_source(args.source, space, fps=args.fps, points=args.points,
+        return open_source(args.source, source_space, fps=args.fps, points=args.points,
                            seed=args.seed, start=first)
 
     source = retarget_to_files(retargeter, open_at, args.out, formats, space,
@@ -295,11 +348,24 @@ def build_parser():
     retarget.add_argument("--fps", type=positive_float, default=None,
                           help="source frame rate (default 30 for clouds, the header's for "
                           "BVH, which is resampled to 30)")
-    retarget.add_argument("--up-axis", choices=tuple(UP_AXES), default="y",
-                          help="up axis of the input and output files (z: Z up, facing -Y); "
-                          ".glb is always Y up")
-    retarget.add_argument("--units", choices=tuple(UNITS), default="m",
-                          help="length unit of the input and output files; .glb is always m")
+    for role in ("source", "target"):
+        retarget.add_argument(f"--{role}-units", choices=tuple(UNITS), default=None,
+                              help=f"length unit of the {role.upper()} file (default: told "
+                              "from the body's size)")
+        retarget.add_argument(f"--{role}-up", choices=tuple(UP_AXES), default=None,
+                              help=f"up axis of the {role.upper()} file (z: Z up, facing -Y; "
+                              "default: told from the body's shape)")
+    retarget.add_argument("--units", choices=tuple(UNITS), default=None,
+                          help="length unit of both input files")
+    retarget.add_argument("--up-axis", choices=tuple(UP_AXES), default=None,
+                          help="up axis of both input files")
+    retarget.add_argument("--force", action="store_true",
+                          help="go on when an input body, in its units and up axis, is not a "
+                          "person's size or lies along its up axis (default: refused)")
+    retarget.add_argument("--out-units", choices=tuple(UNITS), default="m",
+                          help="length unit of the outputs (default m); .glb is always m")
+    retarget.add_argument("--out-up", choices=tuple(UP_AXES), default="y",
+                          help="up axis of the outputs (default y); .glb is always Y up")
     retarget.add_argument("--points", type=int_at_least(1), default=None,
                           help="resample every source cloud to N points (a random subset, "
                           "seeded)")

@@ -27,7 +27,7 @@ from .conventions import FPS
 from .formats.mesh import POINT_SUFFIXES, read_points
 from .formats.npz import NpzFrames, load_npy, npz_members
 from .skeletons import canonical_world
-from .units import to_canonical
+from .units import CANONICAL, Space, to_canonical
 from .validation import as_float32_array
 
 SAMPLE = Path(__file__).parent / "data" / "sample.npz"
@@ -42,6 +42,7 @@ class Source(NamedTuple):
     fps: float             # frames per second of ``frames``
     frames: Iterable       # frames start..T-1 (``open_source``), canonical metres, float32
     files: tuple = None    # a folder's T frame files, to name them in messages
+    space: Space = CANONICAL   # the units and axes its file was read in
 
     def frame_name(self, index):
         """How messages name frame ``index``: its file (folders), else "walk.npy: frame 3"."""
@@ -121,7 +122,7 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
                     raise ValueError(f"{path}: frame {index}: {error}") from None
             yield to_canonical(cloud, space)
 
-    return Source(str(path), "points", count, float(fps or FPS), frames(), files)
+    return Source(str(path), "points", count, float(fps or FPS), frames(), files, space)
 
 
 def _npz_key(path):
@@ -150,7 +151,8 @@ def _bvh_source(path, space, fps, start):
         raise ValueError(f"{path}: {error}") from None
     positions, _ = canonical_world(motion, source=str(path))                # (T, J, 3)
     joints = to_canonical(positions, space)
-    return Source(str(path), "skeleton", len(joints), float(FPS), iter(joints[start:]))
+    return Source(str(path), "skeleton", len(joints), float(FPS), iter(joints[start:]),
+                  space=space)
 
 
 def read_target(path, space):

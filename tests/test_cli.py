@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import GOLDEN, with_rest_pose
+from conftest import CMU_DIR, GOLDEN, needs_cmu, with_rest_pose
 from minretarget import Retargeter
 from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
@@ -29,7 +29,7 @@ from test_glb import node_world_matrices
 trimesh = pytest.importorskip("trimesh")
 WEIGHTS = str(GOLDEN / "tiny_weights.npz")
 ROOT = Path(__file__).resolve().parent.parent
-CMU_WALK = ROOT.parent / "shared" / "data" / "cmu" / "cgspeed" / "08" / "08_01.bvh.gz"
+CMU_WALK = CMU_DIR / "cgspeed" / "08" / "08_01.bvh.gz"
 FRAMES, POINTS = 6, 160
 # Natural order differs from plain string order here (f10 after f4), and every reader is used.
 FOLDER_NAMES = ["f1.npy", "f2.xyz", "f3.ply", "f4.obj", "f10.npy", "f11.xyz"]
@@ -51,7 +51,8 @@ def inputs(tmp_path_factory):
     with np.load(GOLDEN / "tiny_stream.npz") as data:
         counts = data["source_counts"][:FRAMES]
         clouds = np.split(data["source_points"][:counts.sum()], np.cumsum(counts)[:-1])
-    frames = np.stack([c[:POINTS] for c in clouds]).astype(np.float32)      # (T, P, 3)
+    # (T, P, 3), scaled from the golden stream's 4.3 m to a person's height
+    frames = (np.stack([c[:POINTS] for c in clouds]) * 0.4).astype(np.float32)
     mesh = trimesh.creation.icosphere(subdivisions=2)
     # Body-sized and as wide as tall, like a T-pose, so that no warning fires.
     target = (mesh.vertices * [0.85, 0.9, 0.2] + [0, 0.9, 0]).astype(np.float32)
@@ -201,10 +202,11 @@ def test_points_option_takes_a_seeded_subset(inputs):
 
 
 def test_bvh_source_skips_skr(inputs, folder_run, capsys):
-    """Our own result.bvh as a SOURCE: its (canonical-name) joints are the source skeleton."""
+    """Our own result.bvh as a SOURCE: its (canonical-name) joints are the source skeleton
+    (the tiny model's, about 3 m tall: --force)."""
     out = inputs["dir"] / "out_bvh"
     assert run("retarget", folder_run / "result.bvh", inputs["dir"] / "target.ply", "--out", out,
-               "--format", "npz", "--weights", WEIGHTS) == 0
+               "--format", "npz", "--weights", WEIGHTS, "--force") == 0
     result, previous = load(out / "result.npz"), load(folder_run / "result.npz")
     np.testing.assert_allclose(result["source_joints"], previous["joints"], atol=1e-4)
     capsys.readouterr()
@@ -213,17 +215,57 @@ def test_bvh_source_skips_skr(inputs, folder_run, capsys):
     assert "--points applies to point-cloud sources" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not CMU_WALK.exists(), reason="CMU data not present")
-def test_cmu_bvh_source_in_centimetres(inputs):
+@needs_cmu(CMU_WALK)
+def test_cmu_bvh_source_in_centimetres(inputs, capsys):
     out = inputs["dir"] / "out_cmu"
     assert run("retarget", CMU_WALK, inputs["dir"] / "target.ply", "--out", out, "--format",
-               "npz", "--units", "cm", "--fps", 120, "--weights", WEIGHTS) == 0
+               "npz", "--fps", 120, "--weights", WEIGHTS) == 0
+    assert f"source: centimetres (detected), Y up (detected), body 1.45 m tall ({CMU_WALK}: " \
+        "frame 0)" in capsys.readouterr().out
     result = load(out / "result.npz")
     expected_frames = resample(read_bvh(CMU_WALK), fps=30, source_fps=120).num_frames
     assert result["source_joints"].shape == (expected_frames, NUM_JOINTS, 3)
-    assert result["fps"] == 30 and result["units"] == "cm"
-    pelvis_height = result["source_joints"][:, 0, 1] / 100                    # cm -> m
-    assert 0.7 < np.median(pelvis_height) < 1.0
+    assert result["fps"] == 30 and result["units"] == "m"
+    assert 0.7 < np.median(result["source_joints"][:, 0, 1]) < 1.0              # pelvis, m
+
+
+@needs_cmu(CMU_WALK)
+@pytest.mark.parametrize("up_axis", ["y", "z"])
+def test_cmu_bvh_onto_a_metre_body_with_no_options(tmp_path, capsys, up_axis):
+    """Issue 41's first job: a CMU walk (centimetres) onto the sample's target (metres, as a
+    Y-up or a Z-up mesh), with the shipped weights and no option: each file's units and axes
+    are told apart, the feet stay on the target's floor and the target keeps its height
+    (read as one setting, the source was 145 m tall and the result floated 0.44 m up)."""
+    _, target, faces, _ = load_sample()
+    write_mesh(tmp_path / "target.obj", from_canonical(target, make_space("m", up_axis)), faces)
+    assert run("retarget", CMU_WALK, tmp_path / "target.obj", "--out", tmp_path / "out",
+               "--format", "npz,bvh") == 0
+    out = capsys.readouterr().out
+    assert f"target: metres (detected), {up_axis.upper()} up (detected), body 1.50 m" in out
+    assert "source: centimetres (detected), Y up (detected), body 1.45 m tall" in out
+    result = load(tmp_path / "out" / "result.npz")
+    assert result["units"] == "m" and result["up_axis"] == "y"
+    np.testing.assert_allclose(result["target_points"], target, atol=1e-6)
+    lowest = np.abs(result["vertices"][..., 1].min(axis=1))                 # (T,) metres
+    assert np.median(lowest) < 0.03 and lowest.max() < 0.08, lowest
+    heights = np.ptp(result["vertices"][..., 1], axis=1)                    # (T,) walking
+    assert 0.93 < heights.min() / np.ptp(target[:, 1]) and heights.max() < np.ptp(target[:, 1])
+    positions, _ = world_transforms(read_bvh(tmp_path / "out" / "result.bvh"))    # m, Y up
+    np.testing.assert_allclose(positions, result["joints"][:, depth_first_order()], atol=1e-4)
+
+
+def test_a_body_out_of_scale_is_refused_before_writing(inputs, tmp_path, capsys):
+    """--units cm on a metre target: refused, nothing written; --force goes on, warning."""
+    args = ("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+            tmp_path / "out", "--format", "npz", "--units", "cm", "--weights", WEIGHTS)
+    assert run(*args) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "target.ply: the body is 0.018 m (1.8 cm) tall" in err
+    assert "looks like metres (use --target-units m" in err and "--force goes on" in err
+    assert not (tmp_path / "out").exists()
+    assert run(*args, "--force") == 0
+    assert "minretarget: warning: " in capsys.readouterr().err
+    assert (tmp_path / "out" / "result.npz").exists()
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -268,18 +310,32 @@ def test_every_output_reads_back(inputs, folder_run):
     assert len(trimesh.load(folder_run / "result.glb").geometry) == 1
 
 
-def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run):
-    """The same inputs as millimetre, Z-up files give the same motion, written back in
+def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run, capsys):
+    """The same inputs as millimetre, Z-up files give the same motion: told from the bodies
+    with no option, written in metres and +Y up; with the options, written back in
     millimetres and Z-up (the glb stays metres and Y-up)."""
     space = make_space("mm", "z")
     folder = inputs["dir"] / "mm_z"
     folder.mkdir()
     write_mesh(folder / "target.ply", from_canonical(inputs["target"], space), inputs["faces"])
     np.save(folder / "frames.npy", from_canonical(inputs["frames"], space))
+    assert run("retarget", folder / "frames.npy", folder / "target.ply", "--out",
+               folder / "detected", "--format", "npz", "--weights", WEIGHTS) == 0
+    assert capsys.readouterr().out.splitlines()[:2] == [
+        f"target: millimetres (detected), Z up (detected), body 1.80 m tall "
+        f"({folder / 'target.ply'})",
+        f"source: millimetres (detected), Z up (detected), body "
+        f"{np.ptp(inputs['frames'][0, :, 1]):.2f} m tall "
+        f"({folder / 'frames.npy'}: frame 0)"]
+    detected = load(folder / "detected" / "result.npz")
+    assert detected["units"] == "m" and detected["up_axis"] == "y"
+    np.testing.assert_allclose(detected["vertices"], load(folder_run / "result.npz")["vertices"],
+                               atol=1e-4)
     out = folder / "out"
     assert run("retarget", folder / "frames.npy", folder / "target.ply", "--out", out,
                "--format", "ply,npz,glb,bvh", "--units", "mm", "--up-axis", "z",
-               "--weights", WEIGHTS) == 0
+               "--out-units", "mm", "--out-up", "z", "--weights", WEIGHTS) == 0
+    assert "target: millimetres (given), Z up (given)" in capsys.readouterr().out
     metres, mm = load(folder_run / "result.npz"), load(out / "result.npz")
     assert mm["units"] == "mm" and mm["up_axis"] == "z"
     for key in ("vertices", "joints", "root", "source_joints", "target_points",
@@ -420,7 +476,7 @@ def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
     np.savez(tmp_path / "two.npz", a=np.zeros((2, 70, 3)), b=np.zeros((2, 70, 3)))
     cases = [(["retarget", tmp_path / "nowhere", inputs["dir"] / "target.ply"], "nowhere"),
              (["retarget", inputs["dir"] / "frames.npy", tmp_path / "flat.npy"],
-              "flat.npy: target"),
+              "flat.npy: the target has 5 points"),
              (["retarget", tmp_path / "flat.npy", inputs["dir"] / "target.ply"], "flat.npy"),
              (["retarget", tmp_path / "broken.npz", inputs["dir"] / "target.ply"],
               "broken.npz: not a readable .npz"),

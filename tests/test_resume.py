@@ -14,9 +14,12 @@ import pytest
 
 from conftest import GOLDEN
 from minretarget import Retargeter, cli, outputs
-from minretarget.checkpoint import CHECKPOINT, TRACK, Track, load_checkpoint, save_checkpoint
+from minretarget.checkpoint import (CHECKPOINT, TRACK, Track, load_checkpoint, run_record,
+                                    save_checkpoint)
 from minretarget.contacts import FootLock
 from minretarget.formats.mesh import read_points, write_mesh
+from minretarget.sources import open_source
+from minretarget.units import CANONICAL, make_space
 
 trimesh = pytest.importorskip("trimesh")
 WEIGHTS = str(GOLDEN / "tiny_weights.npz")
@@ -172,10 +175,20 @@ def test_output_folder_policy(inputs, tmp_path, capsys):
     assert cli.main(arguments(inputs, tmp_path / "new", "--format", "npz", "--resume")) == 0
 
 
+def test_the_source_units_and_axes_are_part_of_the_run(inputs, tiny_weights):
+    """A resume must read the source as the run began (recorded when not canonical, so that
+    the runs from before match)."""
+    records = [run_record(open_source(inputs / "frames.npy", make_space(units, up)),
+                          {"points": np.zeros((3, 3))}, tiny_weights, ["npz"], CANONICAL, None, 0)
+               for units, up in (("m", "y"), ("mm", "z"))]
+    assert "source_space" not in records[0] and records[1]["source_space"] == ["mm", "z"]
+
+
 def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys):
     """--overwrite keeps the folder's run aside until the new run completes: a run that
-    fails midway leaves it in .previous_run (the error says where), one that fails at its
-    first frame puts it back, and a fresh run that fails there leaves no checkpoint."""
+    fails midway leaves it in .previous_run (the error says where), one refused at its
+    first frame (read before anything is touched, for its units) leaves the folder as it was,
+    and a fresh run that fails there leaves no checkpoint."""
     frames = np.load(inputs / "frames.npy")
     for bad in (0, 2):
         broken = frames[:4].copy()
@@ -200,10 +213,11 @@ def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys
     assert files(out / ".previous_run") == complete
     assert {p.name for p in out.iterdir()} == {".previous_run", CHECKPOINT, TRACK,
                                                "frame_000000.ply", "frame_000001.ply"}
-    # A second replacement drops the failed one's frames; failing at once, it puts back
-    # the run that both were replacing.
+    # A second replacement refused at once leaves both runs as they were; one that succeeds
+    # drops the failed one's frames.
+    failed = files(out / ".previous_run"), {p.name for p in out.iterdir()}
     assert run(out, "nan_at_0.npy", "--overwrite") == 1
-    assert files(out) == complete
+    assert (files(out / ".previous_run"), {p.name for p in out.iterdir()}) == failed
     assert run(out, "nan_at_2.npy", "--overwrite") == 1
     assert run(out, None, "--overwrite") == 0
     assert files(out) == complete                                    # the same run again
