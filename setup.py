@@ -3,9 +3,9 @@ from pathlib import Path
 from setuptools import find_packages, setup
 
 # The command line's file formats and previews (imported lazily; the core needs none): trimesh
-# reads and writes PLY/OBJ, matplotlib (with its Pillow) draws PNG/GIF, tqdm shows progress.
-# The .glb and .bvh writers need only NumPy.
-CLI = ["trimesh>=4.0", "matplotlib>=3.6", "tqdm>=4.60"]
+# reads and writes PLY/OBJ, matplotlib (with its Pillow) draws PNG/GIF, tqdm shows progress,
+# threadpoolctl gives BLAS one thread (--threads). The .glb and .bvh writers need only NumPy.
+CLI = ["trimesh>=4.0", "matplotlib>=3.6", "tqdm>=4.60", "threadpoolctl>=3.1"]
 
 setup(
     name="minretarget",

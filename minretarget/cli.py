@@ -1,11 +1,11 @@
 """The ``minretarget`` command: retarget files, draw previews, run the demo.
 
-    minretarget demo [--out DIR] [--weights FILE]
+    minretarget demo [--out DIR] [--weights FILE] [--threads N]
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
                          [--source-units m|cm|mm] [--source-up y|z] [--target-units ...]
                          [--target-up ...] [--units ...] [--up-axis ...] [--force]
                          [--out-units m|cm|mm] [--out-up y|z] [--points N] [--seed S]
-                         [--weights FILE] [--no-smoothing] [--no-foot-lock]
+                         [--weights FILE] [--threads N] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
                          [--no-facing-check]
                          [--resume | --overwrite]
@@ -83,6 +83,15 @@ def set_target(retargeter, points, faces, name, space=CANONICAL):
     except ValueError as error:
         raise ValueError(f"{name}: {error}") from None
     check_body(points, name, space, tpose=True, role="target")
+
+
+def blas_threads(count):
+    """A context within which every BLAS library of the process (NumPy's, and SciPy's, which
+    numba's kernels call) runs ``count`` threads: more than one busy-wait between SKR's small
+    products, and on a shared CPU made a run 3 to 4 times slower (issue 41)."""
+    threadpoolctl = require("threadpoolctl", "--threads")
+    import scipy.linalg.cython_blas  # noqa: F401  (loads SciPy's BLAS: the limit reaches it)
+    return threadpoolctl.threadpool_limits(count, user_api="blas")
 
 
 @contextlib.contextmanager
@@ -327,11 +336,14 @@ def build_parser():
     parser.add_argument("--version", action="version", version=f"minretarget {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     weights_help = "weights .npz (default: the weights shipped with minretarget)"
+    threads_help = ("BLAS threads (default 1: more are faster only on an idle machine, and "
+                    "several times slower on a shared one)")
 
     demo = commands.add_parser("demo", help="retarget the shipped sample, write every output "
                                "and a preview")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     demo.add_argument("--weights", default=None, help=weights_help)
+    demo.add_argument("--threads", type=int_at_least(1), default=1, help=threads_help)
     demo.set_defaults(run=_demo)
 
     retarget = commands.add_parser(
@@ -373,6 +385,7 @@ def build_parser():
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
+    retarget.add_argument("--threads", type=int_at_least(1), default=1, help=threads_help)
     retarget.add_argument("--no-smoothing", action="store_true",
                           help="do not smooth the source skeleton of each point cloud over "
                                "time (default: smoothed against jitter; the denoiser still "
@@ -451,7 +464,9 @@ def main(argv=None):
     MINRETARGET_TRACEBACK=1."""
     args = build_parser().parse_args(argv)
     try:
-        with warnings.catch_warnings():
+        threads = getattr(args, "threads", None)
+        with warnings.catch_warnings(), (contextlib.nullcontext() if threads is None
+                                         else blas_threads(threads)):
             warnings.simplefilter("always", InputWarning)
             warnings.showwarning = _print_warning
             args.run(args)

@@ -354,6 +354,28 @@ def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run, capsys
                                accessor_array(*glb_m, position), atol=1e-6)
 
 
+@pytest.mark.parametrize("command", ["retarget", "demo"])
+def test_blas_runs_one_thread_unless_told(monkeypatch, command):
+    """Every BLAS library, SciPy's that the kernels call included, for the command's run only
+    (issue 41: two busy-waiting threads made a run on a shared machine 3 to 4 times slower)."""
+    from threadpoolctl import threadpool_info
+
+    def blas():
+        return {(info["filepath"], info["num_threads"]) for info in threadpool_info()
+                if info["user_api"] == "blas"}
+    seen = []
+    monkeypatch.setattr(cli, f"_{command}", lambda args: seen.append(blas()))
+    before = blas()
+    inputs = ("a.npy", "b.ply", "--out", "o") if command == "retarget" else ()
+    for extra in ((), ("--threads", "3")):
+        assert run(command, *inputs, *extra) == 0
+    assert [{threads for _, threads in libraries} for libraries in seen] == [{1}, {3}]
+    import scipy.linalg.cython_blas  # noqa: F401  (numba's BLAS: loaded, and limited, by then)
+    after = blas()
+    assert {path for path, _ in seen[0]} == {path for path, _ in after}
+    assert after >= before                                     # the limits are lifted
+
+
 # ----------------------------------------------------------------------------- render, demo
 
 def test_render_png_and_gif(folder_run, capsys):
