@@ -10,6 +10,7 @@
                          [--no-facing-check]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
+    minretarget warmup [--weights FILE]
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
 axes: ``minretarget.units``. Each input's units and up axis, unless given, are told from its
@@ -22,7 +23,9 @@ value) is reported in one line naming the file (and frame), exit status 1; likel
 (not a T-pose; units or up axis with ``--force``) in ``minretarget: warning:`` lines. An
 interrupted ``retarget`` keeps its complete frames and a checkpoint: ``--resume`` finishes
 it with the same result as an uninterrupted run (``minretarget.checkpoint``); a run that
-fails before its first frame leaves the folder as it was. A fresh run refuses an output folder that holds another run's files unless
+fails before its first frame leaves the folder as it was. The numba kernels compile on a
+machine's first run (about 30 s, said in a line before the progress bar starts), or at
+``minretarget warmup``, then load from their on-disk cache. A fresh run refuses an output folder that holds another run's files unless
 ``--overwrite``, which keeps them aside until the new run completes; the demo replaces only
 an earlier demo's.
 """
@@ -39,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from ._jit import on_first_compile
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
                          abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
@@ -154,6 +158,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                      facing_check=retargeter.facing_check,
                      **settings)
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
+    retargeter.warm_up(skeleton=source.kind != "points")     # before the progress bar starts
     if start:
         source = open_at(start)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -307,6 +312,18 @@ def _demo(args):
           f"{_written(out, FORMATS, count)}, preview.png")
 
 
+def _warmup(args):
+    start = time.perf_counter()
+    retargeter = load_retargeter(args.weights)
+    _, target_points, target_faces, _ = load_sample()
+    retargeter.set_target(target_points, target_faces)
+    for mirror_source, skeleton in ((False, False), (True, False), (False, True)):
+        retargeter.mirror_source = mirror_source
+        retargeter.warm_up(skeleton)
+    print(f"kernels ready in {time.perf_counter() - start:.1f} s; later runs load them from "
+          "numba's cache")
+
+
 def int_at_least(minimum):
     """argparse type: an integer >= ``minimum`` (also the data command line's)."""
     def parse(text):
@@ -432,6 +449,11 @@ def build_parser():
     preview.add_argument("result", help="a result.npz written by retarget or demo")
     preview.add_argument("--out", required=True, help="FILE.png (a strip) or FILE.gif")
     preview.set_defaults(run=_render)
+
+    warmup = commands.add_parser("warmup", help="compile the kernels (about 30 s, once per "
+                                 "machine and release: later runs load them from a cache)")
+    warmup.add_argument("--weights", default=None, help=weights_help)
+    warmup.set_defaults(run=_warmup)
     return parser
 
 
@@ -446,6 +468,13 @@ def _print_warning(message, category, filename, lineno, file=None, line=None):
         print(text, file=sys.stderr)
     else:
         tqdm.write(text, file=sys.stderr)
+
+
+COMPILING = "Compiling kernels once (about 30 s; cached afterwards)"
+
+
+def _compiling():
+    print(COMPILING, file=sys.stderr, flush=True)
 
 
 def _kept(args):
@@ -465,8 +494,8 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
         threads = getattr(args, "threads", None)
-        with warnings.catch_warnings(), (contextlib.nullcontext() if threads is None
-                                         else blas_threads(threads)):
+        with warnings.catch_warnings(), on_first_compile(_compiling), (
+                contextlib.nullcontext() if threads is None else blas_threads(threads)):
             warnings.simplefilter("always", InputWarning)
             warnings.showwarning = _print_warning
             args.run(args)

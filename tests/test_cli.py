@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 
@@ -374,6 +375,29 @@ def test_blas_runs_one_thread_unless_told(monkeypatch, command):
     after = blas()
     assert {path for path, _ in seen[0]} == {path for path, _ in after}
     assert after >= before                                     # the limits are lifted
+
+
+def test_first_compile_is_said_once_before_the_progress_bar(inputs, monkeypatch, tmp_path,
+                                                             capsys):
+    """Issue 41: a cold cache showed as "1/68 [00:57<1:03:50, 57.17s/frame]" and no word.
+    Here the warm-up compiles two new kernels (cached or not, numba compiles those)."""
+    assert run("warmup", "--weights", WEIGHTS) == 0
+    assert "kernels ready in" in capsys.readouterr().out
+    warm_up = Retargeter.warm_up
+
+    def compiling_warm_up(self, skeleton=False):
+        numba.njit(lambda x: x + 1)(1)
+        numba.njit(lambda x: x + 2)(1)
+        warm_up(self, skeleton)
+    args = ("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+            "--format", "npz", "--weights", WEIGHTS)
+    assert run(*args, "--out", tmp_path / "warm") == 0
+    assert cli.COMPILING not in capsys.readouterr().err
+    monkeypatch.setattr(Retargeter, "warm_up", compiling_warm_up)
+    assert run(*args, "--out", tmp_path / "cold") == 0
+    err = capsys.readouterr().err
+    assert err.count(cli.COMPILING) == 1
+    assert err.index(cli.COMPILING) < err.index("retargeting:")
 
 
 # ----------------------------------------------------------------------------- render, demo
