@@ -157,8 +157,10 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                      denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
                      facing_check=retargeter.facing_check,
                      **settings)
+    # Before the folder is touched (a Ctrl-C in a cold cache's compile leaves it as it was)
+    # and before the progress bar starts.
+    retargeter.warm_up(skeleton=source.kind != "points")
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
-    retargeter.warm_up(skeleton=source.kind != "points")     # before the progress bar starts
     if start:
         source = open_at(start)
     out_dir.mkdir(parents=True, exist_ok=True)
