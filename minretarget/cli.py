@@ -53,7 +53,7 @@ from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_format
 from .render import render
 from .retargeter import Retargeter
 from .smoothing import Smoothing
-from .sources import load_sample, open_source, read_target
+from .sources import MESH_POINTS, load_sample, open_source, read_target
 from .units import CANONICAL, UNITS, UP_AXES, make_space, to_canonical
 from .validation import (UNIT_NAMES, InputWarning, TPoseWarning, body_problems, check_body,
                          guess_space)
@@ -399,7 +399,8 @@ def build_parser():
                           help="up axis of the outputs (default y); .glb is always Y up")
     retarget.add_argument("--points", type=int_at_least(1), default=None,
                           help="resample every source cloud to N points (a random subset, "
-                          "seeded)")
+                          "seeded; a mesh frame: N drawn evenly over its surface, default "
+                          f"{MESH_POINTS})")
     retarget.add_argument("--seed", type=int_at_least(0), default=0,
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")

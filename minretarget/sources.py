@@ -3,7 +3,9 @@
 SOURCE, one of:
     - a folder of per-frame point files (``.ply``, ``.obj``, ``.xyz``, ``.npy``), in natural
       order of their names (``frame2`` before ``frame10``); hidden files and other suffixes
-      are skipped;
+      are skipped. A frame with faces (a mesh) becomes points drawn evenly over its surface
+      (``sampling.sample_point_clouds``), so that where its vertices crowd (hands, face)
+      does not matter: SKR learned on such clouds;
     - an ``.npy`` array (T, P, 3) of frames (memory-mapped), or an ``.npz`` holding one such
       array (its only array, else the key ``points`` or ``source_points``);
     - a ``.bvh`` / ``.bvh.gz`` skeleton motion: its joints map onto the 22 canonical joints
@@ -26,11 +28,13 @@ from .bvh import read_bvh, resample
 from .conventions import FPS
 from .formats.mesh import POINT_SUFFIXES, read_points
 from .formats.npz import NpzFrames, load_npy, npz_members
+from .sampling import sample_point_clouds
 from .skeletons import canonical_world
 from .units import CANONICAL, Space, to_canonical
 from .validation import as_float32_array
 
 SAMPLE = Path(__file__).parent / "data" / "sample.npz"
+MESH_POINTS = 2048     # points drawn on a source mesh's surface a frame (the sample's P)
 _NPZ_KEYS = ("points", "source_points")
 
 
@@ -61,8 +65,12 @@ def frame_files(folder):
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def _subsample(points, count, rng):
-    """A random subset of ``count`` points (all of them if there are fewer)."""
+def _cloud(points, faces, count, rng):
+    """One source frame's cloud: ``count`` (None: ``MESH_POINTS``) points drawn area-uniform
+    over the surface if it has ``faces``, else a random subset of ``count`` of its points
+    (all of them if there are fewer, or if ``count`` is None)."""
+    if faces is not None:
+        return sample_point_clouds(points, faces, count or MESH_POINTS, rng)
     if count is None or len(points) <= count:
         return points
     return points[rng.choice(len(points), count, replace=False)]
@@ -77,7 +85,8 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
         fps: the source's frame rate; None: 30 for point clouds, the header's for BVH.
         points: resample every cloud to this many points (a random subset seeded by
             ``seed`` and the frame's index, so frame t is the same whatever frame a pass
-            starts from), or None to keep them all; not for BVH sources.
+            starts from), or None to keep them all; a mesh frame gets this many (None:
+            ``MESH_POINTS``) drawn over its surface, seeded alike; not for BVH sources.
         seed: seed of that resampling.
         start: the first frame to yield (a resumed run); ``count`` stays the total.
     Returns:
@@ -98,7 +107,7 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
         files = tuple(frame_files(path))
         if not files:
             raise ValueError(f"{path}: no point files ({', '.join(POINT_SUFFIXES)}) in folder")
-        raw = (read_points(f)[0] for f in files[start:])
+        raw = (read_points(f) for f in files[start:])                # (points, faces)
         count = len(files)
     elif name.endswith((".npy", ".npz")):
         if name.endswith(".npy"):
@@ -106,15 +115,16 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
         else:
             array = NpzFrames(path, _npz_key(path))
         _check_frames(path, array.shape, array.dtype)
-        raw = array[start:] if isinstance(array, np.ndarray) else array.frames(start)
+        raw = ((frame, None) for frame in (array[start:] if isinstance(array, np.ndarray)
+                                           else array.frames(start)))
         count = len(array)
     else:
         raise ValueError(f"{path}: SOURCE must be a folder of frames, a .npy/.npz array of "
                          "frames or a .bvh file")
 
     def frames():
-        for index, cloud in enumerate(raw, start):
-            cloud = _subsample(np.asarray(cloud), points, np.random.default_rng([seed, index]))
+        for index, (cloud, faces) in enumerate(raw, start):
+            cloud = _cloud(np.asarray(cloud), faces, points, np.random.default_rng([seed, index]))
             if files is None:       # an array's frames; a folder's files are checked on reading
                 try:                # before the units' product spreads an inf over its row
                     as_float32_array(cloud, "source points", (None, 3))

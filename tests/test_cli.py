@@ -21,8 +21,8 @@ from minretarget import retargeter as retargeter_module
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.skeletons import depth_first_order
-from minretarget.sources import SAMPLE, load_sample, open_source
-from minretarget.units import (from_canonical, make_space, rotations_to_canonical,
+from minretarget.sources import MESH_POINTS, SAMPLE, load_sample, open_source
+from minretarget.units import (CANONICAL, from_canonical, make_space, rotations_to_canonical,
                                to_canonical)
 from minretarget.weights import load_weights, save_weights
 from test_glb import node_world_matrices
@@ -267,6 +267,45 @@ def test_a_body_out_of_scale_is_refused_before_writing(inputs, tmp_path, capsys)
     assert run(*args, "--force") == 0
     assert "minretarget: warning: " in capsys.readouterr().err
     assert (tmp_path / "out" / "result.npz").exists()
+
+
+def test_a_mesh_frame_is_a_seeded_even_sample_of_its_surface(tmp_path):
+    """A unit square of two triangles whose vertices crowd in a corner (tiny triangles there):
+    its points spread evenly, MESH_POINTS of them or --points, the same for a frame however
+    a pass starts (--resume)."""
+    corner = np.random.default_rng(0).uniform(0, 0.05, (300, 3)) * [1, 1, 0]
+    vertices = np.concatenate([[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], corner])
+    faces = np.concatenate([[[0, 1, 2], [0, 2, 3]], 4 + np.arange(300).reshape(100, 3)])
+    (tmp_path / "frames").mkdir()
+    for name in ("a.ply", "b.ply"):
+        write_mesh(tmp_path / "frames" / name, vertices, faces)
+    clouds = list(open_source(tmp_path / "frames", CANONICAL).frames)
+    assert clouds[0].shape == (MESH_POINTS, 3)
+    np.testing.assert_allclose(clouds[0].mean(axis=0), [0.5, 0.5, 0], atol=0.03)
+    assert not np.array_equal(clouds[0], clouds[1])                 # a fresh draw a frame
+    [second] = open_source(tmp_path / "frames", CANONICAL, start=1).frames
+    np.testing.assert_array_equal(second, clouds[1])
+    assert next(open_source(tmp_path / "frames", CANONICAL, points=100).frames).shape == (100, 3)
+
+
+def test_mesh_frames_are_sampled_over_their_surface(tmp_path):
+    """Issue 41: the demo's own output meshes fed back as a source (vertices crowded at the
+    hands and head) had their legs swapped in frames 1 to 6 (ankles 0.2 to 0.6 m from the
+    truth, nearer the other ankle's), the vertices taken as an even sampling."""
+    source, target, faces, _ = load_sample()
+    retargeter = Retargeter.from_weights(warn=False)
+    retargeter.set_target(target, faces)
+    truth = [frame for frame, _ in zip(retargeter.run(source.frames), range(8))]
+    (tmp_path / "meshes").mkdir()
+    for t, frame in enumerate(truth):
+        write_mesh(tmp_path / "meshes" / f"frame_{t:06d}.ply", frame.vertices, faces)
+    write_mesh(tmp_path / "target.ply", target, faces)
+    assert run("retarget", tmp_path / "meshes", tmp_path / "target.ply", "--out",
+               tmp_path / "out", "--format", "npz") == 0
+    seen = load(tmp_path / "out" / "result.npz")["source_joints"]              # (T, J, 3)
+    ankles = [JOINT_NAMES.index("left_ankle"), JOINT_NAMES.index("right_ankle")]
+    errors = np.linalg.norm(seen[:, ankles] - [frame.joints[ankles] for frame in truth], axis=-1)
+    assert errors.max() < 0.1, errors
 
 
 # ----------------------------------------------------------------------------- outputs
