@@ -133,10 +133,10 @@ def _digest(arrays):
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
-               facing_check=True):
+               facing_check=True, skeleton_map=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
-    kind, frame count, rate, and units and up axis; its content is assumed unchanged), the
-    target and weights
+    kind, frame count, rate, units and up axis, and a BVH's skeleton map; its content is
+    assumed unchanged), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
     whether SKR also runs on the source's mirror images, whether its joints are refined,
@@ -147,6 +147,7 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             # Recorded only when not canonical, so runs from before it match their checkpoints.
             **({"source_space": list(source.space)} if source.space != CANONICAL else {}),
+            **({"skeleton_map": skeleton_map} if skeleton_map else {}),
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,

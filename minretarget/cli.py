@@ -4,12 +4,14 @@
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
                          [--source-units m|cm|mm] [--source-up y|z] [--target-units ...]
                          [--target-up ...] [--units ...] [--up-axis ...] [--force]
-                         [--out-units m|cm|mm] [--out-up y|z] [--points N] [--seed S]
+                         [--out-units m|cm|mm] [--out-up y|z] [--skeleton-map FILE.json]
+                         [--points N] [--seed S]
                          [--weights FILE] [--threads N] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
                          [--no-facing-check]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
+    minretarget inspect FILE.bvh [--skeleton-map FILE.json]
     minretarget warmup [--weights FILE]
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
@@ -43,6 +45,7 @@ import numpy as np
 
 from . import __version__
 from ._jit import on_first_compile
+from .bvh import read_bvh
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
                          abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
@@ -52,8 +55,9 @@ from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_format
                       previous_outputs)
 from .render import render
 from .retargeter import Retargeter
+from .skeletons import canonical_world, mapping_lines, skeleton_of
 from .smoothing import Smoothing
-from .sources import MESH_POINTS, load_sample, open_source, read_target
+from .sources import MESH_POINTS, load_sample, open_source, read_skeleton_map, read_target
 from .units import CANONICAL, UNITS, UP_AXES, make_space, to_canonical
 from .validation import (UNIT_NAMES, InputWarning, TPoseWarning, body_problems, check_body,
                          guess_space)
@@ -133,7 +137,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.
-        settings: {"points": ..., "seed": ...}: how the source was resampled.
+        settings: {"points": ..., "seed": ..., "skeleton_map": ... (optional)}: how the
+            source was resampled, and a BVH's skeleton map.
         resume: continue the interrupted run in ``out_dir``; overwrite: replace the files of
             an earlier run there (``checkpoint.prepare_out_dir``).
         progress: show a tqdm progress bar on stderr.
@@ -266,7 +271,10 @@ def _retarget(args):
                               args.target_up or args.up_axis, args.force, MIN_POINTS)
     set_target(retargeter, to_canonical(as_in_file, target_space), target_faces, args.target,
                target_space)
-    raw = open_source(args.source, CANONICAL, fps=args.fps, points=args.points, seed=args.seed)
+    skeleton_map = args.skeleton_map and read_skeleton_map(args.skeleton_map)
+    reading = {"fps": args.fps, "points": args.points, "seed": args.seed,
+               "skeleton_map": skeleton_map}
+    raw = open_source(args.source, CANONICAL, **reading)
     if raw.count == 0:
         raise ValueError(f"{raw.path}: holds no frames")
     source_space = file_space(next(iter(raw.frames)), raw.frame_name(0), "source",
@@ -274,15 +282,27 @@ def _retarget(args):
                               args.force, MIN_POINTS if raw.kind == "points" else 1)
 
     def open_at(first):
-        return open_source(args.source, source_space, fps=args.fps, points=args.points,
-                           seed=args.seed, start=first)
+        return open_source(args.source, source_space, start=first, **reading)
 
     source = retarget_to_files(retargeter, open_at, args.out, formats, space,
-                               {"points": args.points, "seed": args.seed},
+                               {"points": args.points, "seed": args.seed,
+                                "skeleton_map": skeleton_map},
                                resume=args.resume, overwrite=args.overwrite)
     print(f"retargeted {source.count} frames at {source.fps:g} fps in "
           f"{time.perf_counter() - start:.1f} s; wrote "
           f"{_written(args.out, formats, source.count)}")
+
+
+def _inspect(args):
+    motion = read_bvh(args.bvh)
+    skeleton_map = args.skeleton_map and read_skeleton_map(args.skeleton_map)
+    scheme, skeleton = skeleton_of(motion, skeleton_map, str(args.bvh))
+    joints, _ = canonical_world(motion, source=str(args.bvh), given=skeleton_map)
+    space = guess_space(joints[0])
+    print(f"{args.bvh}: {len(motion.names)} joints, {motion.num_frames} frames at "
+          f"{motion.fps:g} fps; skeleton {scheme}; {UNIT_NAMES[space.units]}, "
+          f"{space.up_axis.upper()} up (detected)")
+    print("\n".join(mapping_lines(skeleton, motion.names)))
 
 
 def _render(args):
@@ -393,6 +413,9 @@ def build_parser():
     retarget.add_argument("--force", action="store_true",
                           help="go on when an input body, in its units and up axis, is not a "
                           "person's size or lies along its up axis (default: refused)")
+    retarget.add_argument("--skeleton-map", metavar="FILE.json", default=None,
+                          help='a BVH source\'s {"canonical joint": "its joint", ...} where '
+                          "its names do not tell (minretarget inspect shows the mapping)")
     retarget.add_argument("--out-units", choices=tuple(UNITS), default="m",
                           help="length unit of the outputs (default m); .glb is always m")
     retarget.add_argument("--out-up", choices=tuple(UP_AXES), default="y",
@@ -452,6 +475,13 @@ def build_parser():
     preview.add_argument("result", help="a result.npz written by retarget or demo")
     preview.add_argument("--out", required=True, help="FILE.png (a strip) or FILE.gif")
     preview.set_defaults(run=_render)
+
+    inspect = commands.add_parser("inspect", help="show how a BVH's joints map onto the 22 "
+                                  "canonical joints")
+    inspect.add_argument("bvh", help="a .bvh or .bvh.gz file")
+    inspect.add_argument("--skeleton-map", metavar="FILE.json", default=None,
+                         help="as for retarget")
+    inspect.set_defaults(run=_inspect)
 
     warmup = commands.add_parser("warmup", help="compile the kernels (about 30 s, once per "
                                  "machine and release: later runs load them from a cache)")

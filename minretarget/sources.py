@@ -9,7 +9,7 @@ SOURCE, one of:
     - an ``.npy`` array (T, P, 3) of frames (memory-mapped), or an ``.npz`` holding one such
       array (its only array, else the key ``points`` or ``source_points``);
     - a ``.bvh`` / ``.bvh.gz`` skeleton motion: its joints map onto the 22 canonical joints
-      (``minretarget.skeletons``) and it is resampled to the model's 30 fps; it is retargeted
+      (``minretarget.skeletons``: any common naming scheme, or a skeleton map) and it is resampled to the model's 30 fps; it is retargeted
       from its joints directly, without the skeleton regressor (SKR).
 TARGET: a ``.ply`` / ``.obj`` mesh or point cloud, an ``.xyz`` or ``.npy`` (V, 3) file, in T-pose.
 
@@ -76,7 +76,7 @@ def _cloud(points, faces, count, rng):
     return points[rng.choice(len(points), count, replace=False)]
 
 
-def open_source(path, space, fps=None, points=None, seed=0, start=0):
+def open_source(path, space, fps=None, points=None, seed=0, start=0, skeleton_map=None):
     """Open a SOURCE (module docstring).
 
     Args:
@@ -89,6 +89,8 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
             ``MESH_POINTS``) drawn over its surface, seeded alike; not for BVH sources.
         seed: seed of that resampling.
         start: the first frame to yield (a resumed run); ``count`` stays the total.
+        skeleton_map: a BVH's {canonical joint: its joint} where its names do not tell
+            (``read_skeleton_map``); BVH sources only.
     Returns:
         Source; clouds keep their frame rate, BVH motions come out at 30 fps.
     Raises:
@@ -101,7 +103,9 @@ def open_source(path, space, fps=None, points=None, seed=0, start=0):
     if name.endswith((".bvh", ".bvh.gz")):
         if points is not None:
             raise ValueError(f"{path}: --points applies to point-cloud sources, not to BVH")
-        return _bvh_source(path, space, fps, start)
+        return _bvh_source(path, space, fps, start, skeleton_map)
+    if skeleton_map is not None:
+        raise ValueError(f"{path}: --skeleton-map applies to BVH sources")
     files = None
     if path.is_dir():
         files = tuple(frame_files(path))
@@ -153,13 +157,27 @@ def _check_frames(path, shape, dtype):
                          f"{dtype} {shape}")
 
 
-def _bvh_source(path, space, fps, start):
+def read_skeleton_map(path):
+    """A ``--skeleton-map`` file: JSON {canonical joint: BVH joint name} -> dict; ValueError
+    naming the file if it is not such an object (the names are checked against the BVH by
+    ``skeletons.map_skeleton``)."""
+    try:
+        mapping = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path}: cannot read the skeleton map: {error}") from None
+    if not isinstance(mapping, dict) or not all(isinstance(v, str) for v in mapping.values()):
+        raise ValueError(f'{path}: a skeleton map is a JSON object {{"canonical joint": '
+                         f'"BVH joint", ...}}, got {json.dumps(mapping)[:80]}')
+    return mapping
+
+
+def _bvh_source(path, space, fps, start, skeleton_map):
     motion = read_bvh(path)
     try:
         motion = resample(motion, fps=FPS, source_fps=fps)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
-    positions, _ = canonical_world(motion, source=str(path))                # (T, J, 3)
+    positions, _ = canonical_world(motion, source=str(path), given=skeleton_map)   # (T, J, 3)
     joints = to_canonical(positions, space)
     return Source(str(path), "skeleton", len(joints), float(FPS), iter(joints[start:]),
                   space=space)

@@ -175,13 +175,15 @@ def test_output_folder_policy(inputs, tmp_path, capsys):
     assert cli.main(arguments(inputs, tmp_path / "new", "--format", "npz", "--resume")) == 0
 
 
-def test_the_source_units_and_axes_are_part_of_the_run(inputs, tiny_weights):
-    """A resume must read the source as the run began (recorded when not canonical, so that
-    the runs from before match)."""
+def test_the_source_units_axes_and_skeleton_map_are_part_of_the_run(inputs, tiny_weights):
+    """A resume must read the source as the run began (recorded when not canonical, or given,
+    so that the runs from before match)."""
     records = [run_record(open_source(inputs / "frames.npy", make_space(units, up)),
-                          {"points": np.zeros((3, 3))}, tiny_weights, ["npz"], CANONICAL, None, 0)
-               for units, up in (("m", "y"), ("mm", "z"))]
+                          {"points": np.zeros((3, 3))}, tiny_weights, ["npz"], CANONICAL, None, 0,
+                          skeleton_map=mapping)
+               for units, up, mapping in (("m", "y", None), ("mm", "z", {"neck": "Neck1"}))]
     assert "source_space" not in records[0] and records[1]["source_space"] == ["mm", "z"]
+    assert "skeleton_map" not in records[0] and records[1]["skeleton_map"] == {"neck": "Neck1"}
 
 
 def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys):
