@@ -7,13 +7,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import GOLDEN
+from conftest import CMU_DIR, GOLDEN, needs_cmu
 from minretarget import cli
 from minretarget.bvh import (axis_rotation, local_rotations, matrix_to_euler, parse_bvh,
-                             world_transforms)
+                             read_bvh, world_transforms)
 from minretarget.conventions import JOINT_NAMES
 from minretarget.formats.mesh import write_mesh
-from minretarget.skeletons import canonical_world, skeleton_of
+from minretarget.skeletons import (SKELETONS, _ancestors, canonical_world, map_skeleton,
+                                   skeleton_of)
 
 WEIGHTS = str(GOLDEN / "tiny_weights.npz")
 SIDES = {"left": 1, "right": -1}
@@ -252,7 +253,7 @@ def test_a_zero_pose_that_is_not_a_t_pose_changes_nothing():
     for side, sign in SIDES.items():
         down = axis_rotation("Z", -90 * sign)          # the arm's rest turned down by this
         first = t_pose.names.index(f"{side.title()}Arm")
-        arm = [first] + [j for j in range(len(offsets)) if first in ancestors(t_pose, j)]
+        arm = [first] + [j for j in range(len(offsets)) if first in _ancestors(t_pose.parents, j)]
         for j in arm:
             parent = t_pose.parents[j]
             offsets[j] = down @ offsets[j] if parent in arm else offsets[j]
@@ -273,10 +274,12 @@ def test_a_zero_pose_that_is_not_a_t_pose_changes_nothing():
                                atol=1e-6)
 
 
-def ancestors(motion, joint):
-    """The BVH joints above ``joint``."""
-    found = []
-    while motion.parents[joint] >= 0:
-        joint = motion.parents[joint]
-        found.append(joint)
-    return found
+@needs_cmu(CMU_DIR / "cgspeed" / "08" / "08_01.bvh.gz")
+def test_names_and_tree_alone_find_the_cmu_table_on_a_real_file(monkeypatch):
+    """The CMU "Daz" conversion, mapped without its table, gives the table's joints."""
+    motion = read_bvh(CMU_DIR / "cgspeed" / "08" / "08_01.bvh.gz")
+    found = map_skeleton(motion)
+    assert found.rigid["spine3"] == ("between", "neck", 0.5)
+    monkeypatch.setitem(SKELETONS, "found", found)
+    np.testing.assert_allclose(canonical_world(motion, "found")[0],
+                               canonical_world(motion, "cmu")[0], atol=1e-9)
