@@ -213,6 +213,11 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     return source
 
 
+def frames(count):
+    """"1 frame", "2 frames"."""
+    return f"{count} frame{'' if count == 1 else 's'}"
+
+
 def _written(out_dir, formats, count):
     names = [f"{frame_name(0, f)} .. {frame_name(count - 1, f)}" for f in formats
              if f in ("ply", "obj")]
@@ -288,7 +293,7 @@ def _retarget(args):
                                {"points": args.points, "seed": args.seed,
                                 "skeleton_map": skeleton_map},
                                resume=args.resume, overwrite=args.overwrite)
-    print(f"retargeted {source.count} frames at {source.fps:g} fps in "
+    print(f"retargeted {frames(source.count)} at {source.fps:g} fps in "
           f"{time.perf_counter() - start:.1f} s; wrote "
           f"{_written(args.out, formats, source.count)}")
 
@@ -299,7 +304,7 @@ def _inspect(args):
     scheme, skeleton = skeleton_of(motion, skeleton_map, str(args.bvh))
     joints, _ = canonical_world(motion, source=str(args.bvh), given=skeleton_map)
     space = guess_space(joints[0])
-    print(f"{args.bvh}: {len(motion.names)} joints, {motion.num_frames} frames at "
+    print(f"{args.bvh}: {len(motion.names)} joints, {frames(motion.num_frames)} at "
           f"{motion.fps:g} fps; skeleton {scheme}; {UNIT_NAMES[space.units]}, "
           f"{space.up_axis.upper()} up (detected)")
     print("\n".join(mapping_lines(skeleton, motion.names)))
@@ -307,7 +312,7 @@ def _inspect(args):
 
 def _render(args):
     count = render(args.result, args.out)
-    print(f"drew {count} frames into {args.out}")
+    print(f"drew {frames(count)} into {args.out}")
 
 
 def _demo(args):
@@ -330,7 +335,7 @@ def _demo(args):
                               overwrite=True, demo=True).count
     clouds = load_sample()[0].frames                # a fresh pass over the source clouds
     render(out / "result.npz", out / "preview.png", source_points=clouds)
-    print(f"retargeted {count} frames in {time.perf_counter() - start:.1f} s; wrote "
+    print(f"retargeted {frames(count)} in {time.perf_counter() - start:.1f} s; wrote "
           f"{_written(out, FORMATS, count)}, preview.png")
 
 

@@ -186,6 +186,13 @@ def test_foot_leash_refuses_bad_settings(inputs, tmp_path, capsys, options, mess
     assert not (tmp_path / "o").exists()
 
 
+def test_one_frame_is_one_frame(inputs, tmp_path, capsys):
+    np.save(tmp_path / "one.npy", inputs["frames"][:1])
+    assert run("retarget", tmp_path / "one.npy", inputs["dir"] / "target.ply", "--out",
+               tmp_path / "out", "--format", "npz", "--weights", WEIGHTS) == 0
+    assert "retargeted 1 frame at 30 fps" in capsys.readouterr().out
+
+
 def test_points_option_takes_a_seeded_subset(inputs):
     out = inputs["dir"] / "out_points"
     for _ in range(2):                                     # twice: the same bytes of arrays
