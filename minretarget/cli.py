@@ -373,8 +373,16 @@ def positive_float(text):
     return value
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (the usage of a command with twenty
+    options buried the message), pointing at ``--help``; exit status 2 as argparse's."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrors(
         prog="minretarget", description="Correspondence-free online human motion retargeting: "
         "make a T-pose target body perform a source motion.")
     parser.add_argument("--version", action="version", version=f"minretarget {__version__}")
@@ -425,7 +433,7 @@ def build_parser():
                           help="length unit of the outputs (default m); .glb is always m")
     retarget.add_argument("--out-up", choices=tuple(UP_AXES), default="y",
                           help="up axis of the outputs (default y); .glb is always Y up")
-    retarget.add_argument("--points", type=int_at_least(1), default=None,
+    retarget.add_argument("--points", type=int_at_least(MIN_POINTS), default=None,
                           help="resample every source cloud to N points (a random subset, "
                           "seeded; a mesh frame: N drawn evenly over its surface, default "
                           f"{MESH_POINTS})")

@@ -484,8 +484,13 @@ def test_negative_seed_is_refused_by_name(inputs, tmp_path, capsys):
         run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
             tmp_path / "o", "--seed", "-1")
     assert exit_.value.code == 2
-    assert "argument --seed: must be at least 0, got -1" in capsys.readouterr().err
+    assert capsys.readouterr().err == ("minretarget retarget: error: argument --seed: must be at "
+                                       "least 0, got -1 (see minretarget retarget --help)\n")
     assert not (tmp_path / "o").exists()
+    with pytest.raises(SystemExit):                  # --points, not the source, is too small
+        run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+            tmp_path / "o", "--points", "10")
+    assert "argument --points: must be at least 64, got 10" in capsys.readouterr().err
 
 
 @pytest.fixture
