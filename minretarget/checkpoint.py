@@ -228,6 +228,8 @@ def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
     run's files. Either way the temporaries of writes that a kill interrupted are removed.
     """
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"{out_dir}: is a file; --out names the folder the outputs go into")
     previous = previous_outputs(out_dir)
     if overwrite:
         _set_aside(out_dir, previous)
@@ -264,13 +266,15 @@ def finish_run(out_dir):
             (Path(out_dir) / name).unlink()
 
 
-def abandon_run(out_dir):
+def abandon_run(out_dir, created=False):
     """The run in ``out_dir`` failed before its first frame was complete: delete its files
     (every run file there is its: its checkpoint, a frame file written before the failure)
-    and put back the run it was replacing, if any."""
+    and put back the run it was replacing, if any; a folder the run ``created`` goes too."""
     remove_outputs(out_dir)
     kept = Path(out_dir) / PREVIOUS_RUN
     if kept.is_dir():
         for path in kept.iterdir():
             os.replace(path, Path(out_dir) / path.name)
         kept.rmdir()
+    if created:
+        Path(out_dir).rmdir()

@@ -27,9 +27,9 @@ interrupted ``retarget`` keeps its complete frames and a checkpoint: ``--resume`
 it with the same result as an uninterrupted run (``minretarget.checkpoint``); a run that
 fails before its first frame leaves the folder as it was. The numba kernels compile on a
 machine's first run (about 30 s, said in a line before the progress bar starts), or at
-``minretarget warmup``, then load from their on-disk cache. A fresh run refuses an output folder that holds another run's files unless
-``--overwrite``, which keeps them aside until the new run completes; the demo replaces only
-an earlier demo's.
+``minretarget warmup``, then load from their on-disk cache. A fresh run refuses an output
+folder that holds another run's files unless ``--overwrite``, which keeps them aside until
+the new run completes; the demo replaces only an earlier demo's.
 """
 import argparse
 import contextlib
@@ -168,6 +168,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
         source = open_at(start)
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     if demo:
         (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
@@ -198,14 +199,17 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                     raise KeyboardInterrupt
                 if done % CHECKPOINT_EVERY == 0:
                     save_checkpoint(out_dir, run, state, done, track)
-    except BaseException:
-        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here; with
-        # nothing done, leave the folder as it was.
+    except BaseException as error:
+        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here (and
+        # say so); with nothing done, leave the folder as it was.
         if done > start:
             save_checkpoint(out_dir, run, state, done, track)
         elif start == 0:
             track.close()
-            abandon_run(out_dir)
+            abandon_run(out_dir, created)
+        if done and isinstance(error, (ValueError, OSError)):
+            raise ValueError(f"{error}; the {frames_text(done)} done are kept: fix it, then add "
+                             "--resume to continue") from None
         raise
     finally:
         track.close()
@@ -213,7 +217,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     return source
 
 
-def frames(count):
+def frames_text(count):
     """"1 frame", "2 frames"."""
     return f"{count} frame{'' if count == 1 else 's'}"
 
@@ -293,7 +297,7 @@ def _retarget(args):
                                {"points": args.points, "seed": args.seed,
                                 "skeleton_map": skeleton_map},
                                resume=args.resume, overwrite=args.overwrite)
-    print(f"retargeted {frames(source.count)} at {source.fps:g} fps in "
+    print(f"retargeted {frames_text(source.count)} at {source.fps:g} fps in "
           f"{time.perf_counter() - start:.1f} s; wrote "
           f"{_written(args.out, formats, source.count)}")
 
@@ -304,7 +308,7 @@ def _inspect(args):
     scheme, skeleton = skeleton_of(motion, skeleton_map, str(args.bvh))
     joints, _ = canonical_world(motion, source=str(args.bvh), given=skeleton_map)
     space = guess_space(joints[0])
-    print(f"{args.bvh}: {len(motion.names)} joints, {frames(motion.num_frames)} at "
+    print(f"{args.bvh}: {len(motion.names)} joints, {frames_text(motion.num_frames)} at "
           f"{motion.fps:g} fps; skeleton {scheme}; {UNIT_NAMES[space.units]}, "
           f"{space.up_axis.upper()} up (detected)")
     print("\n".join(mapping_lines(skeleton, motion.names)))
@@ -312,7 +316,7 @@ def _inspect(args):
 
 def _render(args):
     count = render(args.result, args.out)
-    print(f"drew {frames(count)} into {args.out}")
+    print(f"drew {frames_text(count)} into {args.out}")
 
 
 def _demo(args):
@@ -335,7 +339,7 @@ def _demo(args):
                               overwrite=True, demo=True).count
     clouds = load_sample()[0].frames                # a fresh pass over the source clouds
     render(out / "result.npz", out / "preview.png", source_points=clouds)
-    print(f"retargeted {frames(count)} in {time.perf_counter() - start:.1f} s; wrote "
+    print(f"retargeted {frames_text(count)} in {time.perf_counter() - start:.1f} s; wrote "
           f"{_written(out, FORMATS, count)}, preview.png")
 
 

@@ -9,8 +9,9 @@ SOURCE, one of:
     - an ``.npy`` array (T, P, 3) of frames (memory-mapped), or an ``.npz`` holding one such
       array (its only array, else the key ``points`` or ``source_points``);
     - a ``.bvh`` / ``.bvh.gz`` skeleton motion: its joints map onto the 22 canonical joints
-      (``minretarget.skeletons``: any common naming scheme, or a skeleton map) and it is resampled to the model's 30 fps; it is retargeted
-      from its joints directly, without the skeleton regressor (SKR).
+      (``minretarget.skeletons``: any common naming scheme, or a skeleton map) and it is
+      resampled to the model's 30 fps; it is retargeted from its joints directly, without
+      the skeleton regressor (SKR).
 TARGET: a ``.ply`` / ``.obj`` mesh or point cloud, an ``.xyz`` or ``.npy`` (V, 3) file, in T-pose.
 
 Everything is converted on reading to canonical metres and axes (``minretarget.units``).

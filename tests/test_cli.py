@@ -590,6 +590,36 @@ def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
         assert err.startswith("minretarget: error:") and err.count("\n") == 1
 
 
+def test_out_naming_a_file_and_a_failure_before_and_after_frames(inputs, tmp_path, capsys,
+                                                                  monkeypatch):
+    """Issue 41: --out naming a file printed "[Errno 17]"; a failure at frame 0 left an empty
+    --out; a failure midway did not say --resume."""
+    (tmp_path / "file").write_text("a user's")
+    args = ("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--format",
+            "npz", "--weights", WEIGHTS, "--out")
+    assert run(*args, tmp_path / "file") == 1
+    assert "file: is a file; --out names the folder the outputs go into" in \
+        capsys.readouterr().err
+    step = Retargeter.step
+
+    def failing(after):
+        def fail(self, points):
+            if (0 if self.state is None else self.state.frames_seen) >= after:
+                raise ValueError("a damaged frame")
+            return step(self, points)
+        return fail
+    monkeypatch.setattr(Retargeter, "step", failing(0))
+    assert run(*args, tmp_path / "new") == 1
+    assert "frame 0: a damaged frame" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    monkeypatch.setattr(Retargeter, "step", failing(3))
+    assert run(*args, tmp_path / "new") == 1
+    assert capsys.readouterr().err.endswith("frame 3: a damaged frame; the 3 frames done are "
+                                            "kept: fix it, then add --resume to continue\n")
+    monkeypatch.setattr(Retargeter, "step", step)
+    assert run(*args, tmp_path / "new", "--resume") == 0
+
+
 MISSING_EXTRA = """
 import runpy, sys
 # A None entry makes every import of the module fail, importlib's included.
