@@ -35,9 +35,11 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_write
+from .contacts import FootLock
 from .conventions import NUM_JOINTS
 from .formats.npz import ARCHIVE_ERRORS, load_npz
 from .outputs import previous_outputs, remove_outputs
+from .smoothing import Smoothing
 from .smrm import MotionState, check_state
 from .units import CANONICAL
 from .weights import flatten_weights
@@ -175,6 +177,26 @@ def save_checkpoint(out_dir, run, state, frames_done, track):
         np.savez(file, **arrays)
 
 
+# Run record entries that hold a NamedTuple's values, by its fields.
+_FIELDS = {"smoothing": Smoothing._fields, "foot_lock": FootLock._fields}
+
+
+def difference(key, then, now):
+    """One entry of two run records that differ, for people: "foot_lock max_offset 0.01
+    then, 0.1 now", "the target differs (its SHA-256)", "refine off then, on now"."""
+    if key.endswith("_sha256"):
+        return f"the {key[:-len('_sha256')]} differs (its SHA-256)"
+    if key in _FIELDS and isinstance(then, list) and isinstance(now, list):
+        return "; ".join(f"{key} {field} {a:g} then, {b:g} now"
+                         for field, a, b in zip(_FIELDS[key], then, now) if a != b)
+
+    def shown(value):
+        if value is None or isinstance(value, bool):
+            return "on" if value else "off"
+        return " ".join(map(str, value)) if isinstance(value, list) else str(value)
+    return f"{key} {shown(then)} then, {shown(now)} now"
+
+
 def load_checkpoint(out_dir, run, weights):
     """The checkpoint in ``out_dir``: (frames_done, MotionState or None).
 
@@ -194,7 +216,7 @@ def load_checkpoint(out_dir, run, weights):
                          "resumed (--overwrite starts again)") from None
     # Over both records' keys: an option recorded only when on (refine, denoise, rest_pose,
     # facing_check) may be off.
-    differences = [f"{key} {saved.get(key)!r} then, {run.get(key)!r} now"
+    differences = [difference(key, saved.get(key), run.get(key))
                    for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
     if differences:
         raise ValueError(f"{path}: this output was started with other inputs or options "

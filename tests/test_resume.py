@@ -14,8 +14,8 @@ import pytest
 
 from conftest import GOLDEN
 from minretarget import Retargeter, cli, outputs
-from minretarget.checkpoint import (CHECKPOINT, TRACK, Track, load_checkpoint, run_record,
-                                    save_checkpoint)
+from minretarget.checkpoint import (CHECKPOINT, TRACK, Track, difference, load_checkpoint,
+                                    run_record, save_checkpoint)
 from minretarget.contacts import FootLock
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.sources import open_source
@@ -117,7 +117,8 @@ def test_resume_refuses_another_foot_leash(inputs, tmp_path, monkeypatch, capsys
     assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
                               "--foot-leash", 0.05)) == 1
     err = capsys.readouterr().err
-    assert "started with other inputs or options" in err and "foot_lock" in err
+    assert "started with other inputs or options (foot_lock max_offset 0.01 then, 0.05 now)" \
+        in err                           # issue 41: the record's raw lists, named field by field
     assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
                               "--foot-leash", FootLock().max_offset)) == 0
     assert (out / "result.npz").exists()
@@ -354,6 +355,15 @@ def test_resume_refuses_an_option_switched_off(tiny_weights, tmp_path):
     run = {"version": 5, "frames": 10, "denoise": True}
     save_checkpoint(tmp_path, run, None, 0, track)
     track.close()
-    with pytest.raises(ValueError, match="denoise True then, None now"):
+    with pytest.raises(ValueError, match="denoise on then, off now"):
         load_checkpoint(tmp_path, {"version": 5, "frames": 10}, tiny_weights)
     assert load_checkpoint(tmp_path, run, tiny_weights) == (0, None)
+
+
+@pytest.mark.parametrize("key, then, now, said", [
+    ("target_sha256", "ab" * 32, "cd" * 32, "the target differs (its SHA-256)"),
+    ("smoothing", [0.5, 1.0], None, "smoothing 0.5 1.0 then, off now"),
+    ("source_space", None, ["cm", "y"], "source_space off then, cm y now"),
+    ("points", 2048, 1024, "points 2048 then, 1024 now")])
+def test_a_resume_names_what_differs_in_words(key, then, now, said):
+    assert difference(key, then, now) == said
