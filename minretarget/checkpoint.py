@@ -133,12 +133,23 @@ def _digest(arrays):
     return digest.hexdigest()
 
 
+def source_stamp(source):
+    """SHA-256 of the name, size and modification time of each file of ``source`` (a
+    folder's frame files, or the one file): a file rewritten since a run began changes it,
+    as ``make`` would tell, without reading every frame again."""
+    digest = hashlib.sha256()
+    for path in source.files or (source.path,):
+        status = os.stat(path)
+        digest.update(f"{Path(path).name}\0{status.st_size}\0{status.st_mtime_ns}\n".encode())
+    return digest.hexdigest()
+
+
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
                facing_check=True, skeleton_map=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
-    kind, frame count, rate, units and up axis, and a BVH's skeleton map; its content is
-    assumed unchanged), the target and weights
+    kind, frame count, rate, units and up axis, a BVH's skeleton map, and its files' sizes
+    and times: ``source_stamp``), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
     whether SKR also runs on the source's mirror images, whether its joints are refined,
@@ -150,6 +161,7 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             # Recorded only when not canonical, so runs from before it match their checkpoints.
             **({"source_space": list(source.space)} if source.space != CANONICAL else {}),
             **({"skeleton_map": skeleton_map} if skeleton_map else {}),
+            "source_stamp": source_stamp(source),
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
@@ -184,6 +196,8 @@ _FIELDS = {"smoothing": Smoothing._fields, "foot_lock": FootLock._fields}
 def difference(key, then, now):
     """One entry of two run records that differ, for people: "foot_lock max_offset 0.01
     then, 0.1 now", "the target differs (its SHA-256)", "refine off then, on now"."""
+    if key == "source_stamp":
+        return "the source's files changed (their sizes or times)"
     if key.endswith("_sha256"):
         return f"the {key[:-len('_sha256')]} differs (its SHA-256)"
     if key in _FIELDS and isinstance(then, list) and isinstance(now, list):

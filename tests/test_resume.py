@@ -360,6 +360,31 @@ def test_resume_refuses_an_option_switched_off(tiny_weights, tmp_path):
     assert load_checkpoint(tmp_path, run, tiny_weights) == (0, None)
 
 
+def test_a_resume_refuses_a_source_file_changed_since(inputs, tmp_path, monkeypatch, capsys):
+    """Issue 41: --resume took a changed source frame silently."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for t, cloud in enumerate(np.load(inputs / "frames.npy")[:6]):
+        np.save(folder / f"f{t}.npy", cloud)
+    out, original = tmp_path / "out", Retargeter.step
+
+    def stop_at_frame_3(self, points):
+        if self.state is not None and self.state.frames_seen == 3:
+            raise KeyboardInterrupt
+        return original(self, points)
+    args = arguments(inputs, out, "--format", "npz")
+    args[1] = str(folder)
+    monkeypatch.setattr(Retargeter, "step", stop_at_frame_3)
+    assert cli.main(args) == 130
+    monkeypatch.undo()
+    np.save(folder / "f1.npy", np.load(folder / "f1.npy") + 0.01)
+    os.utime(folder / "f1.npy", ns=(1, 1))                          # whatever the clock says
+    capsys.readouterr()
+    assert cli.main(args + ["--resume"]) == 1
+    assert "(the source's files changed (their sizes or times))" in capsys.readouterr().err
+    assert cli.main(args + ["--overwrite"]) == 0
+
+
 @pytest.mark.parametrize("key, then, now, said", [
     ("target_sha256", "ab" * 32, "cd" * 32, "the target differs (its SHA-256)"),
     ("smoothing", [0.5, 1.0], None, "smoothing 0.5 1.0 then, off now"),
