@@ -286,9 +286,13 @@ def _retarget(args):
     raw = open_source(args.source, CANONICAL, **reading)
     if raw.count == 0:
         raise ValueError(f"{raw.path}: holds no frames")
-    source_space = file_space(next(iter(raw.frames)), raw.frame_name(0), "source",
-                              args.source_units or args.units, args.source_up or args.up_axis,
-                              args.force, MIN_POINTS if raw.kind == "points" else 1)
+    first = next(iter(raw.frames))
+    source_space = file_space(first, raw.frame_name(0), "source", args.source_units or args.units,
+                              args.source_up or args.up_axis, args.force,
+                              MIN_POINTS if raw.kind == "points" else 1)
+    if args.points and len(first) < args.points:
+        warnings.warn(f"{raw.frame_name(0)}: {len(first)} points, fewer than --points "
+                      f"{args.points}: clouds that small are used whole", InputWarning)
 
     def open_at(first):
         return open_source(args.source, source_space, start=first, **reading)

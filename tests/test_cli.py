@@ -193,6 +193,15 @@ def test_one_frame_is_one_frame(inputs, tmp_path, capsys):
     assert "retargeted 1 frame at 30 fps" in capsys.readouterr().out
 
 
+def test_points_over_a_cloud_s_size_is_said(inputs, tmp_path, capsys):
+    """Issue 41: --points 4096 on smaller clouds silently did nothing."""
+    assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+               tmp_path / "out", "--format", "npz", "--points", 200, "--weights", WEIGHTS) == 0
+    [warning] = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert warning.endswith(f"frames.npy: frame 0: {POINTS} points, fewer than --points 200: "
+                            "clouds that small are used whole")
+
+
 def test_points_option_takes_a_seeded_subset(inputs):
     out = inputs["dir"] / "out_points"
     for _ in range(2):                                     # twice: the same bytes of arrays
