@@ -468,6 +468,24 @@ def test_render_png_and_gif(folder_run, capsys):
     assert "drew 6 frames" in capsys.readouterr().out
 
 
+def test_render_shades_the_surface(folder_run, tmp_path):
+    """Issue 41: the preview drew the result's vertices as dots; a mesh is now a surface (a
+    point cloud still dots), filling its outline."""
+    from PIL import Image
+    with np.load(folder_run / "result.npz", allow_pickle=False) as data:
+        result = dict(data)                     # the target standing still (the tiny model's
+    result["vertices"][:] = result["target_points"]            # poses crumple it)
+    np.savez(tmp_path / "mesh.npz", **result)
+    np.savez(tmp_path / "cloud.npz", **{**result, "target_faces": np.empty((0, 3), np.int64)})
+
+    def inked(name):                  # the fraction of the result row in grey (not skeleton)
+        assert run("render", tmp_path / name, "--out", tmp_path / "strip.png") == 0
+        with Image.open(tmp_path / "strip.png") as image:
+            rgb = np.asarray(image.convert("RGB"), dtype=int)[image.height // 2:]
+        return ((np.ptp(rgb, axis=-1) < 12) & (rgb.max(axis=-1) < 235)).mean()
+    assert inked("mesh.npz") > inked("cloud.npz") + 0.05         # about 0.13 against 0.05
+
+
 def test_render_refuses_a_malformed_result(folder_run, tmp_path, capsys):
     with np.load(folder_run / "result.npz", allow_pickle=False) as data:
         good = {key: data[key] for key in data.files}
@@ -475,7 +493,9 @@ def test_render_refuses_a_malformed_result(folder_run, tmp_path, capsys):
              "flat": (dict(joints=good["joints"][..., :2]),
                       r"joints must have shape (any, 22, 3), got (6, 22, 2)"),
              "short": (dict(joints=good["joints"][:3]), "with one T"),
-             "units": (dict(units=np.array("furlong")), "units must be one of m, cm, mm")}
+             "units": (dict(units=np.array("furlong")), "units must be one of m, cm, mm"),
+             "faces": (dict(target_faces=good["target_faces"] + 10**6),
+                       "target_faces must be (F, 3) indices of its vertices")}
     for name, (change, message) in cases.items():
         np.savez(tmp_path / f"{name}.npz", **{**good, **change})
         assert run("render", tmp_path / f"{name}.npz", "--out", tmp_path / "x.png") == 1
