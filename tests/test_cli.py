@@ -376,7 +376,7 @@ def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run, capsys
     write_mesh(folder / "target.ply", from_canonical(inputs["target"], space), inputs["faces"])
     np.save(folder / "frames.npy", from_canonical(inputs["frames"], space))
     assert run("retarget", folder / "frames.npy", folder / "target.ply", "--out",
-               folder / "detected", "--format", "npz", "--weights", WEIGHTS) == 0
+               folder / "detected", "--format", "npz,bvh", "--weights", WEIGHTS) == 0
     assert capsys.readouterr().out.splitlines()[:2] == [
         f"target: millimetres (detected), Z up (detected), body 1.80 m tall "
         f"({folder / 'target.ply'})",
@@ -385,6 +385,9 @@ def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run, capsys
         f"({folder / 'frames.npy'}: frame 0)"]
     detected = load(folder / "detected" / "result.npz")
     assert detected["units"] == "m" and detected["up_axis"] == "y"
+    positions, _ = world_transforms(read_bvh(folder / "detected" / "result.bvh"))  # m, Y up
+    np.testing.assert_allclose(positions, detected["joints"][:, depth_first_order()],
+                               atol=1e-4)               # issue 41: written Z-up like its input
     np.testing.assert_allclose(detected["vertices"], load(folder_run / "result.npz")["vertices"],
                                atol=1e-4)
     out = folder / "out"
