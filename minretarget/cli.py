@@ -410,7 +410,8 @@ def build_parser():
         "retarget", help="retarget a motion onto a target body",
         description="Retarget SOURCE (a folder of per-frame .ply/.obj/.xyz/.npy point clouds, "
         "a .npy/.npz array (T, P, 3) of frames, or a .bvh skeleton motion) onto TARGET (a "
-        ".ply/.obj mesh or point cloud, or a .xyz/.npy (V, 3) file, in T-pose).")
+        ".ply/.obj mesh or point cloud, a .xyz/.npy (V, 3) file, or a .npz holding "
+        "target_points (a result's), points or vertices, with their faces, in T-pose).")
     retarget.add_argument("source", help="SOURCE motion")
     retarget.add_argument("target", help="TARGET body in T-pose")
     retarget.add_argument("--out", required=True, help="output folder")

@@ -12,7 +12,8 @@ SOURCE, one of:
       (``minretarget.skeletons``: any common naming scheme, or a skeleton map) and it is
       resampled to the model's 30 fps; it is retargeted from its joints directly, without
       the skeleton regressor (SKR).
-TARGET: a ``.ply`` / ``.obj`` mesh or point cloud, an ``.xyz`` or ``.npy`` (V, 3) file, in T-pose.
+TARGET: a ``.ply`` / ``.obj`` mesh or point cloud, an ``.xyz`` or ``.npy`` (V, 3) file, or an
+``.npz`` (``read_target``), in T-pose.
 
 Everything is converted on reading to canonical metres and axes (``minretarget.units``).
 Frames are read lazily, one at a time, so memory does not grow with the number of frames
@@ -27,8 +28,8 @@ import numpy as np
 
 from .bvh import read_bvh, resample
 from .conventions import FPS
-from .formats.mesh import POINT_SUFFIXES, read_points
-from .formats.npz import NpzFrames, load_npy, npz_members
+from .formats.mesh import POINT_SUFFIXES, checked_points, read_points
+from .formats.npz import NpzFrames, load_npy, load_npz, npz_members
 from .sampling import sample_point_clouds
 from .skeletons import canonical_world
 from .units import CANONICAL, Space, to_canonical
@@ -37,6 +38,7 @@ from .validation import as_float32_array
 SAMPLE = Path(__file__).parent / "data" / "sample.npz"
 MESH_POINTS = 2048     # points drawn on a source mesh's surface a frame (the sample's P)
 _NPZ_KEYS = ("points", "source_points")
+_TARGET_KEYS = (("target_points", "target_faces"), ("points", "faces"), ("vertices", "faces"))
 
 
 class Source(NamedTuple):
@@ -185,8 +187,23 @@ def _bvh_source(path, space, fps, start, skeleton_map):
 
 
 def read_target(path, space):
-    """Read a TARGET: (V, 3) float32 canonical T-pose points and (F, 3) int64 faces or None."""
-    points, faces = read_points(path)
+    """Read a TARGET: (V, 3) float32 canonical T-pose points and (F, 3) int64 faces or None.
+    Besides the point files (``formats.mesh.read_points``), an ``.npz`` holding
+    ``target_points`` (and ``target_faces``: a result or the sample), ``points`` or
+    ``vertices`` (and ``faces``), or one (V, 3) array."""
+    if Path(path).suffix.lower() != ".npz":
+        points, faces = read_points(path)
+        return to_canonical(points, space), faces
+    keys = npz_members(path)
+    points_key, faces_key = next(
+        ((p, f) for p, f in _TARGET_KEYS if p in keys),
+        (keys[0], None) if len(keys) == 1 else (None, None))
+    if points_key is None:
+        raise ValueError(f"{path}: holds {', '.join(keys) or 'no array'}; a target .npz holds "
+                         "one (V, 3) array, or target_points, points or vertices (with "
+                         "target_faces or faces)")
+    arrays = load_npz(path, keys=[k for k in (points_key, faces_key) if k in keys])
+    points, faces = checked_points(path, arrays[points_key], arrays.get(faces_key))
     return to_canonical(points, space), faces
 
 

@@ -324,6 +324,26 @@ def test_mesh_frames_are_sampled_over_their_surface(tmp_path):
     assert errors.max() < 0.1, errors
 
 
+def test_npz_targets(inputs, folder_run, tmp_path, capsys):
+    """Issue 41: a .npz was refused as a target (though a source): a result's target, a
+    body's points and faces, one array; the body and faces as from the .ply."""
+    np.savez(tmp_path / "body.npz", vertices=inputs["target"], faces=inputs["faces"])
+    np.savez(tmp_path / "one.npz", inputs["target"])
+    np.savez(tmp_path / "two.npz", a=inputs["target"], b=inputs["target"])
+    expected = load(folder_run / "result.npz")["vertices"]
+    for target in (folder_run / "result.npz", tmp_path / "body.npz", tmp_path / "one.npz"):
+        out = tmp_path / target.stem
+        assert run("retarget", inputs["dir"] / "frames.npy", target, "--out", out,
+                   "--format", "npz", "--weights", WEIGHTS) == 0
+        result = load(out / "result.npz")
+        np.testing.assert_allclose(result["vertices"], expected, atol=1e-5)
+        assert len(result["target_faces"]) == (0 if target.stem == "one" else
+                                               len(inputs["faces"]))
+    assert run("retarget", inputs["dir"] / "frames.npy", tmp_path / "two.npz", "--out",
+               tmp_path / "x", "--weights", WEIGHTS) == 1
+    assert "two.npz: holds a, b; a target .npz holds one (V, 3) array" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------- outputs
 
 def test_every_output_reads_back(inputs, folder_run):
