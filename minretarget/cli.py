@@ -12,6 +12,7 @@
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
     minretarget inspect FILE.bvh [--skeleton-map FILE.json]
+    minretarget bodies
     minretarget warmup [--weights FILE]
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
@@ -46,6 +47,7 @@ import numpy as np
 from . import __version__
 from ._jit import on_first_compile
 from .bvh import read_bvh
+from .bodies import body_lines
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
                          abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
@@ -318,6 +320,10 @@ def _inspect(args):
     print("\n".join(mapping_lines(skeleton, motion.names)))
 
 
+def _bodies(args):
+    print("\n".join(body_lines()))
+
+
 def _render(args):
     count = render(args.result, args.out)
     print(f"drew {frames_text(count)} into {args.out}")
@@ -410,10 +416,11 @@ def build_parser():
         "retarget", help="retarget a motion onto a target body",
         description="Retarget SOURCE (a folder of per-frame .ply/.obj/.xyz/.npy point clouds, "
         "a .npy/.npz array (T, P, 3) of frames, or a .bvh skeleton motion) onto TARGET (a "
-        ".ply/.obj mesh or point cloud, a .xyz/.npy (V, 3) file, or a .npz holding "
-        "target_points (a result's), points or vertices, with their faces, in T-pose).")
+        ".ply/.obj mesh or point cloud, a .xyz/.npy (V, 3) file, a .npz holding "
+        "target_points (a result's), points or vertices, with their faces, in T-pose; or the "
+        "name of a shipped body: minretarget bodies).")
     retarget.add_argument("source", help="SOURCE motion")
-    retarget.add_argument("target", help="TARGET body in T-pose")
+    retarget.add_argument("target", help="TARGET body in T-pose, or a shipped body's name")
     retarget.add_argument("--out", required=True, help="output folder")
     retarget.add_argument("--format", default=DEFAULT_FORMATS,
                           help=f"comma-separated outputs among {','.join(FORMATS)} "
@@ -497,6 +504,10 @@ def build_parser():
     preview.add_argument("result", help="a result.npz written by retarget or demo")
     preview.add_argument("--out", required=True, help="FILE.png (a strip) or FILE.gif")
     preview.set_defaults(run=_render)
+
+    bodies = commands.add_parser("bodies", help="list the target bodies that ship with "
+                                 "minretarget (a TARGET may name one)")
+    bodies.set_defaults(run=_bodies)
 
     inspect = commands.add_parser("inspect", help="show how a BVH's joints map onto the 22 "
                                   "canonical joints")

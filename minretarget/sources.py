@@ -26,6 +26,7 @@ from typing import Iterable, NamedTuple
 
 import numpy as np
 
+from .bodies import shipped_body
 from .bvh import read_bvh, resample
 from .conventions import FPS
 from .formats.mesh import POINT_SUFFIXES, checked_points, read_points
@@ -188,9 +189,13 @@ def _bvh_source(path, space, fps, start, skeleton_map):
 
 def read_target(path, space):
     """Read a TARGET: (V, 3) float32 canonical T-pose points and (F, 3) int64 faces or None.
-    Besides the point files (``formats.mesh.read_points``), an ``.npz`` holding
+    Besides the point files (``formats.mesh.read_points``) and the name of a shipped body
+    (``minretarget.bodies``), an ``.npz`` holding
     ``target_points`` (and ``target_faces``: a result or the sample), ``points`` or
     ``vertices`` (and ``faces``), or one (V, 3) array."""
+    if not Path(path).exists():                     # the name of a shipped body, or a typo
+        points, faces = shipped_body(str(path))
+        return to_canonical(points, space), faces
     if Path(path).suffix.lower() != ".npz":
         points, faces = read_points(path)
         return to_canonical(points, space), faces

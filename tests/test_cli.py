@@ -700,3 +700,24 @@ def test_missing_cli_extra_is_a_message_not_a_traceback(inputs, tmp_path):
     assert "'trimesh'" in blocked.stderr and 'pip install "minretarget[cli]"' in blocked.stderr
     assert "Traceback" not in blocked.stderr
     assert not (tmp_path / "b").exists() or not any((tmp_path / "b").iterdir())
+
+
+def test_shipped_bodies_are_listed_and_taken_by_name(inputs, tmp_path, capsys):
+    """Issue 41: nothing shipped a body to retarget onto."""
+    from minretarget.bodies import BODIES, body_names, shipped_body
+    from minretarget.validation import body_problems
+    assert BODIES.stat().st_size < 1_500_000
+    assert run("bodies") == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == list(body_names()) and len(lines) >= 4
+    for name in body_names():
+        points, faces = shipped_body(name)
+        assert body_problems(points, name, tpose=True) == [], name     # human, Y up, T-pose
+        assert points[:, 1].min() == pytest.approx(0, abs=1e-6) and faces.max() < len(points)
+    assert run("retarget", inputs["dir"] / "frames.npy", "child", "--out", tmp_path / "out",
+               "--format", "npz", "--weights", WEIGHTS) == 0
+    np.testing.assert_array_equal(load(tmp_path / "out" / "result.npz")["target_points"],
+                                  shipped_body("child")[0])
+    assert run("retarget", inputs["dir"] / "frames.npy", "chlid", "--out", tmp_path / "x",
+               "--weights", WEIGHTS) == 1
+    assert "chlid: no such file, nor a shipped body (child, " in capsys.readouterr().err
