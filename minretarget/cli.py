@@ -288,12 +288,12 @@ def _retarget(args):
     raw = open_source(args.source, CANONICAL, **reading)
     if raw.count == 0:
         raise ValueError(f"{raw.path}: holds no frames")
-    first = next(iter(raw.frames))
-    source_space = file_space(first, raw.frame_name(0), "source", args.source_units or args.units,
-                              args.source_up or args.up_axis, args.force,
-                              MIN_POINTS if raw.kind == "points" else 1)
-    if args.points and len(first) < args.points:
-        warnings.warn(f"{raw.frame_name(0)}: {len(first)} points, fewer than --points "
+    frame_0 = next(iter(raw.frames))
+    source_space = file_space(frame_0, raw.frame_name(0), "source",
+                              args.source_units or args.units, args.source_up or args.up_axis,
+                              args.force, MIN_POINTS if raw.kind == "points" else 1)
+    if args.points and len(frame_0) < args.points:
+        warnings.warn(f"{raw.frame_name(0)}: {len(frame_0)} points, fewer than --points "
                       f"{args.points}: clouds that small are used whole", InputWarning)
 
     def open_at(first):
@@ -312,7 +312,7 @@ def _inspect(args):
     motion = read_bvh(args.bvh)
     skeleton_map = args.skeleton_map and read_skeleton_map(args.skeleton_map)
     scheme, skeleton = skeleton_of(motion, skeleton_map, str(args.bvh))
-    joints, _ = canonical_world(motion, source=str(args.bvh), given=skeleton_map)
+    joints, _ = canonical_world(motion, skeleton, str(args.bvh))
     space = guess_space(joints[0])
     print(f"{args.bvh}: {len(motion.names)} joints, {frames_text(motion.num_frames)} at "
           f"{motion.fps:g} fps; skeleton {scheme}; {UNIT_NAMES[space.units]}, "

@@ -287,7 +287,8 @@ def canonical_world(bvh, skeleton=None, source="BVH", given=None):
 
     Args:
         bvh: BVHMotion (any units; the result is in the same ones).
-        skeleton: a key of ``SKELETONS``; None finds how it maps (``skeleton_of``).
+        skeleton: a key of ``SKELETONS`` or a Skeleton; None finds how it maps
+            (``skeleton_of``).
         source: names the file in errors.
         given: {canonical joint: BVH joint name}, a skeleton map (``map_skeleton``).
     Returns:
@@ -295,7 +296,8 @@ def canonical_world(bvh, skeleton=None, source="BVH", given=None):
             rigidly by their parent (module docstring).
         rotations: (T, J, 3, 3) float64 world rotations relative to the zero pose.
     """
-    table = SKELETONS[skeleton] if skeleton else skeleton_of(bvh, given, source)[1]
+    table = (skeleton_of(bvh, given, source)[1] if skeleton is None else
+             SKELETONS[skeleton] if isinstance(skeleton, str) else skeleton)
     bvh_positions, bvh_rotations = world_transforms(bvh)
     index = {}
     for i, name in enumerate(bvh.names):
