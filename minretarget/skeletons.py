@@ -21,7 +21,8 @@ Reading: a BVH skeleton -> the 22 canonical joints
     pelvis is where the legs meet, the spine the joints between it and the neck: the CMU
     standard conversion (``Hips/LHipJoint/LeftUpLeg``), Mixamo with or without a prefix,
     Rokoko (``LeftThigh/LeftShin``), the Unreal mannequin (``pelvis/thigh_l/calf_l``),
-    SMPL-style (``Pelvis/L_Hip``), Biovision (``Hips/Chest/LeftHip``) and most studios'.
+    SMPL-style (``Pelvis/L_Hip``), Biovision (``Hips/Chest/LeftHip``), 3ds Max Biped
+    (``Bip01_L_Thigh``: a prefix all names share is set aside) and most studios'.
     A canonical joint the skeleton lacks is placed on the way from its parent to a joint
     it has (rigid entry "between"), or at the ankle's End Site (the ball of the foot).
     ``--skeleton-map FILE.json`` ({canonical joint: BVH joint}) settles the rest.
@@ -36,6 +37,7 @@ Writing: a retargeted rig -> BVH (``rig_to_bvh``)
     on each leaf joint half its parent bone long (the rig has no bone beyond a leaf; viewers
     want one to draw).
 """
+import os
 import re
 from typing import NamedTuple
 
@@ -117,13 +119,20 @@ def find_skeleton(names):
 # arm's from the wrist up, each the nearest above the one before it.
 LEG = (("hip", r"up(per)?leg|thigh|femur|hip"),
        ("knee", r"(low(er)?)?leg|shin|calf|knee|tibia"),
-       ("ankle", r"foot|ankle"), ("foot", r"toes?|toebase|ball|foot"))
+       ("ankle", r"foot|ankle"), ("foot", r"toes?0?|toebase|ball|foot"))
 ARM = (("wrist", r"hand|wrist"), ("elbow", r"forearm|low(er)?arm|elbow"),
        ("shoulder", r"(up(per)?)?arm|shoulder|shldr|humerus"),
        ("collar", r"collar|clavicle|shoulder"))
 _SIDE_NAMES = (r"(?i:(?P<side>left|right))[_. -]?(?P<base>.+)",
                r"(?P<side>[LlRr])(?:[_. -]|(?=[A-Z]))(?P<base>.+)",
                r"(?P<base>.+?)[_. -](?i:(?P<side>left|right|l|r))")
+
+
+def shared_prefix(names):
+    """The prefix that every joint name but the root's (often bare: "Bip01", "root") has, up
+    to a separator ("Bip01_", "Character1_"), or ""."""
+    common = os.path.commonprefix([_bare(name) for name in names[1:]]) if len(names) > 2 else ""
+    return re.match(r"(.*[_:. -])?", common)[0] or ""
 
 
 def split_side(name):
@@ -166,7 +175,8 @@ def map_skeleton(bvh, given=None, source="BVH"):
     for i, parent in enumerate(parents):
         zero[i] = bvh.offsets[i] + (zero[parent] if parent >= 0 else 0)
     margin = 0.02 * np.ptp(zero, axis=0).max()
-    split = [split_side(name) for name in bvh.names]
+    prefix = shared_prefix(bvh.names)
+    split = [split_side(_bare(name).removeprefix(prefix)) for name in bvh.names]
     sides = [side or ("left" if x > margin else "right" if x < -margin else None)
              for (side, _), x in zip(split, zero[:, 0] - zero[0, 0])]
     lineage = [set(_ancestors(parents, i)) for i in range(len(parents))]
