@@ -4,7 +4,7 @@ from setuptools import find_packages, setup
 
 # The command line's file formats and previews (imported lazily; the core needs none): trimesh
 # reads and writes PLY/OBJ, matplotlib (with its Pillow) draws PNG/GIF, tqdm shows progress,
-# threadpoolctl gives each of `minretarget batch`'s workers one BLAS thread.
+# threadpoolctl gives BLAS one thread (--threads; one per `minretarget batch` worker).
 # The .glb and .bvh writers need only NumPy.
 CLI = ["trimesh>=4.0", "matplotlib>=3.6", "tqdm>=4.60", "threadpoolctl>=3.1"]
 # `minretarget batch --ray`: the same job on a Ray cluster (tests/test_batch.py starts a

@@ -11,8 +11,33 @@ fastmath allows reassociation and contraction (FMA) but keeps NaN and inf semant
 bad value propagates instead of being optimised into garbage. Set ``NUMBA_DISABLE_JIT=1``
 to run every kernel as plain Python (the tests do this too).
 """
+import contextlib
+
 import numba
+from numba.core import event
 
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 kernel = numba.njit(cache=True, fastmath=FASTMATH, nogil=True)
+
+
+class _First(event.Listener):
+    def __init__(self, callback):
+        self.callback = callback
+
+    def on_start(self, event):
+        callback, self.callback = self.callback, None
+        if callback is not None:
+            callback()
+
+    def on_end(self, event):
+        pass
+
+
+@contextlib.contextmanager
+def on_first_compile(callback):
+    """Within: ``callback()`` runs once, just before numba first compiles a kernel. numba
+    raises its "numba:compile" event only for a kernel it cannot load from the on-disk
+    cache, so a warm cache (or ``NUMBA_DISABLE_JIT=1``) never calls it."""
+    with event.install_listener("numba:compile", _First(callback)):
+        yield

@@ -35,10 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_write
+from .contacts import FootLock
 from .conventions import NUM_JOINTS
 from .formats.npz import ARCHIVE_ERRORS, load_npz
 from .outputs import previous_outputs, remove_outputs
+from .smoothing import Smoothing
 from .smrm import MotionState, check_state
+from .units import CANONICAL
 from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
@@ -130,11 +133,23 @@ def _digest(arrays):
     return digest.hexdigest()
 
 
+def source_stamp(source):
+    """SHA-256 of the name, size and modification time of each file of ``source`` (a
+    folder's frame files, or the one file): a file rewritten since a run began changes it,
+    as ``make`` would tell, without reading every frame again."""
+    digest = hashlib.sha256()
+    for path in source.files or (source.path,):
+        status = os.stat(path)
+        digest.update(f"{Path(path).name}\0{status.st_size}\0{status.st_mtime_ns}\n".encode())
+    return digest.hexdigest()
+
+
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
-               facing_check=True):
+               facing_check=True, skeleton_map=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
-    kind, frame count and rate; its content is assumed unchanged), the target and weights
+    kind, frame count, rate, units and up axis, a BVH's skeleton map, and its files' sizes
+    and times: ``source_stamp``), the target and weights
     (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
     (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
     whether SKR also runs on the source's mirror images, whether its joints are refined,
@@ -143,6 +158,10 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
     never, so not recorded)."""
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
+            # Recorded only when not canonical, so runs from before it match their checkpoints.
+            **({"source_space": list(source.space)} if source.space != CANONICAL else {}),
+            **({"skeleton_map": skeleton_map} if skeleton_map else {}),
+            "source_stamp": source_stamp(source),
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
@@ -170,6 +189,28 @@ def save_checkpoint(out_dir, run, state, frames_done, track):
         np.savez(file, **arrays)
 
 
+# Run record entries that hold a NamedTuple's values, by its fields.
+_FIELDS = {"smoothing": Smoothing._fields, "foot_lock": FootLock._fields}
+
+
+def difference(key, then, now):
+    """One entry of two run records that differ, for people: "foot_lock max_offset 0.01
+    then, 0.1 now", "the target differs (its SHA-256)", "refine off then, on now"."""
+    if key == "source_stamp":
+        return "the source's files changed (their sizes or times)"
+    if key.endswith("_sha256"):
+        return f"the {key[:-len('_sha256')]} differs (its SHA-256)"
+    if key in _FIELDS and isinstance(then, list) and isinstance(now, list):
+        return "; ".join(f"{key} {field} {a:g} then, {b:g} now"
+                         for field, a, b in zip(_FIELDS[key], then, now) if a != b)
+
+    def shown(value):
+        if value is None or isinstance(value, bool):
+            return "on" if value else "off"
+        return " ".join(map(str, value)) if isinstance(value, list) else str(value)
+    return f"{key} {shown(then)} then, {shown(now)} now"
+
+
 def load_checkpoint(out_dir, run, weights):
     """The checkpoint in ``out_dir``: (frames_done, MotionState or None).
 
@@ -189,7 +230,7 @@ def load_checkpoint(out_dir, run, weights):
                          "resumed (--overwrite starts again)") from None
     # Over both records' keys: an option recorded only when on (refine, denoise, rest_pose,
     # facing_check) may be off.
-    differences = [f"{key} {saved.get(key)!r} then, {run.get(key)!r} now"
+    differences = [difference(key, saved.get(key), run.get(key))
                    for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
     if differences:
         raise ValueError(f"{path}: this output was started with other inputs or options "
@@ -223,6 +264,8 @@ def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
     run's files. Either way the temporaries of writes that a kill interrupted are removed.
     """
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"{out_dir}: is a file; --out names the folder the outputs go into")
     previous = previous_outputs(out_dir)
     if overwrite:
         _set_aside(out_dir, previous)
@@ -259,13 +302,15 @@ def finish_run(out_dir):
             (Path(out_dir) / name).unlink()
 
 
-def abandon_run(out_dir):
+def abandon_run(out_dir, created=False):
     """The run in ``out_dir`` failed before its first frame was complete: delete its files
     (every run file there is its: its checkpoint, a frame file written before the failure)
-    and put back the run it was replacing, if any."""
+    and put back the run it was replacing, if any; a folder the run ``created`` goes too."""
     remove_outputs(out_dir)
     kept = Path(out_dir) / PREVIOUS_RUN
     if kept.is_dir():
         for path in kept.iterdir():
             os.replace(path, Path(out_dir) / path.name)
         kept.rmdir()
+    if created:
+        Path(out_dir).rmdir()

@@ -1,26 +1,37 @@
 """The ``minretarget`` command: retarget files, draw previews, run the demo.
 
-    minretarget demo [--out DIR] [--weights FILE]
+    minretarget demo [--out DIR] [--weights FILE] [--threads N]
     minretarget retarget SOURCE TARGET --out DIR [--format ply,obj,npz,glb,bvh] [--fps F]
-                         [--up-axis y|z] [--units m|cm|mm] [--points N] [--seed S]
-                         [--weights FILE] [--no-smoothing] [--no-foot-lock]
+                         [--source-units m|cm|mm] [--source-up y|z] [--target-units ...]
+                         [--target-up ...] [--units ...] [--up-axis ...] [--force]
+                         [--out-units m|cm|mm] [--out-up y|z] [--skeleton-map FILE.json]
+                         [--points N] [--seed S]
+                         [--weights FILE] [--threads N] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
                          [--no-facing-check]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
     minretarget batch JOB --out DIR [--workers N] [--ray auto|ADDRESS] [--resume]
+    minretarget inspect FILE.bvh [--skeleton-map FILE.json]
+    minretarget bodies
+    minretarget warmup [--weights FILE]
 
 SOURCE and TARGET kinds: ``minretarget.sources``; outputs: ``minretarget.outputs``; units and
-axes: ``minretarget.units``. Needs the ``cli`` extra (``pip install "minretarget[cli]"``):
-without it the command says so instead of failing with a traceback. Bad input (a missing or
-malformed file, a wrong shape or value) is reported in one line naming the file (and frame),
-exit status 1; likely mistakes (units, up axis, not a T-pose) in ``minretarget: warning:``
-lines. An interrupted ``retarget`` keeps its complete frames and a checkpoint:
-``--resume`` finishes it with the same result as an uninterrupted run
-(``minretarget.checkpoint``); a run that fails before its first frame leaves the folder as
-it was. A fresh run refuses an output folder that holds another run's files unless
-``--overwrite``, which keeps them aside until the new run completes; the demo replaces only
-an earlier demo's.
+axes: ``minretarget.units``. Each input's units and up axis, unless given, are told from its
+body's size and shape (``validation.guess_space``) and reported in one line; a body that is
+still not a person's size, or lies along its up axis, is refused before anything is written
+unless ``--force``. Outputs are in metres, +Y up, unless ``--out-units`` / ``--out-up``.
+Needs the ``cli`` extra (``pip install "minretarget[cli]"``): without it the command says so
+instead of failing with a traceback. Bad input (a missing or malformed file, a wrong shape or
+value) is reported in one line naming the file (and frame), exit status 1; likely mistakes
+(not a T-pose; units or up axis with ``--force``) in ``minretarget: warning:`` lines. An
+interrupted ``retarget`` keeps its complete frames and a checkpoint: ``--resume`` finishes
+it with the same result as an uninterrupted run (``minretarget.checkpoint``); a run that
+fails before its first frame leaves the folder as it was. The numba kernels compile on a
+machine's first run (about 30 s, said in a line before the progress bar starts), or at
+``minretarget warmup``, then load from their on-disk cache. A fresh run refuses an output
+folder that holds another run's files unless ``--overwrite``, which keeps them aside until
+the new run completes; the demo replaces only an earlier demo's.
 """
 import argparse
 import contextlib
@@ -32,19 +43,27 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
+from ._jit import on_first_compile
+from .bvh import read_bvh
+from .bodies import body_lines
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
                          abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
 from .contacts import FootLock
+from .conventions import MIN_POINTS
 from .extras import MissingExtra, require
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
                       previous_outputs)
 from .render import render
 from .retargeter import Retargeter
+from .skeletons import canonical_world, mapping_lines, skeleton_of
 from .smoothing import Smoothing
-from .sources import load_sample, open_source, read_target
-from .units import CANONICAL, UNITS, UP_AXES, make_space
-from .validation import InputWarning, check_body
+from .sources import MESH_POINTS, load_sample, open_source, read_skeleton_map, read_target
+from .units import CANONICAL, UNITS, UP_AXES, make_space, to_canonical
+from .validation import (UNIT_NAMES, InputWarning, TPoseWarning, body_problems, check_body,
+                         guess_space)
 from .weights import DEFAULT_WEIGHTS
 
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
@@ -74,7 +93,16 @@ def set_target(retargeter, points, faces, name, space=CANONICAL):
         retargeter.set_target(points, faces)
     except ValueError as error:
         raise ValueError(f"{name}: {error}") from None
-    check_body(points, name, space, tpose=True)
+    check_body(points, name, space, tpose=True, role="target")
+
+
+def blas_threads(count):
+    """A context within which every BLAS library of the process (NumPy's, and SciPy's, which
+    numba's kernels call) runs ``count`` threads: more than one busy-wait between SKR's small
+    products, and on a shared CPU made a run 3 to 4 times slower (issue 41)."""
+    threadpoolctl = require("threadpoolctl", "--threads")
+    import scipy.linalg.cython_blas  # noqa: F401  (loads SciPy's BLAS: the limit reaches it)
+    return threadpoolctl.threadpool_limits(count, user_api="blas")
 
 
 @contextlib.contextmanager
@@ -112,7 +140,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.
-        settings: {"points": ..., "seed": ...}: how the source was resampled.
+        settings: {"points": ..., "seed": ..., "skeleton_map": ... (optional)}: how the
+            source was resampled, and a BVH's skeleton map.
         resume: continue the interrupted run in ``out_dir``; overwrite: replace the files of
             an earlier run there (``checkpoint.prepare_out_dir``).
         progress: show a tqdm progress bar on stderr.
@@ -136,9 +165,13 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                      denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
                      facing_check=retargeter.facing_check,
                      **settings)
+    # Before the folder is touched (a Ctrl-C in a cold cache's compile leaves it as it was)
+    # and before the progress bar starts.
+    retargeter.warm_up(skeleton=source.kind != "points")
     start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
     if start:
         source = open_at(start)
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     if demo:
         (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
@@ -162,26 +195,34 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                 except ValueError as error:
                     raise ValueError(f"{source.frame_name(index)}: {error}") from None
                 if index == 0:
-                    check_body(data, source.frame_name(0), space)
+                    check_body(data, source.frame_name(0), source.space, role="source")
                 write(frame)
                 done, state = index + 1, retargeter.state
                 if stop_asked:
                     raise KeyboardInterrupt
                 if done % CHECKPOINT_EVERY == 0:
                     save_checkpoint(out_dir, run, state, done, track)
-    except BaseException:
-        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here; with
-        # nothing done, leave the folder as it was.
+    except BaseException as error:
+        # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here (and
+        # say so); with nothing done, leave the folder as it was.
         if done > start:
             save_checkpoint(out_dir, run, state, done, track)
         elif start == 0:
             track.close()
-            abandon_run(out_dir)
+            abandon_run(out_dir, created)
+        if done and isinstance(error, (ValueError, OSError)):
+            raise ValueError(f"{error}; the {frames_text(done)} done are kept: fix it, then add "
+                             "--resume to continue") from None
         raise
     finally:
         track.close()
     finish_run(out_dir)
     return source
+
+
+def frames_text(count):
+    """"1 frame", "2 frames"."""
+    return f"{count} frame{'' if count == 1 else 's'}"
 
 
 def _written(out_dir, formats, count):
@@ -191,9 +232,43 @@ def _written(out_dir, formats, count):
     return f"{out_dir}: " + ", ".join(names)
 
 
+def file_space(points, name, role, units=None, up_axis=None, force=False, min_points=1):
+    """The units and up axis of one input file, told from its body where not given
+    (``validation.guess_space``), reported in one line on stdout.
+
+    Args:
+        points: (N, 3) the body's points or joints as in the file (a source: its frame 0).
+        name: the file (and frame), for messages; role: "source" or "target".
+        units, up_axis: given by the user, or None to guess.
+        force: go on (with a warning, later) when the body read in that space is still not
+            a person's size or lies along its up axis.
+        min_points: fewer points are refused as such (``conventions.MIN_POINTS`` for a
+            cloud).
+    Returns:
+        ``units.Space``.
+    Raises:
+        ValueError naming the file and the option to give, unless ``force``.
+    """
+    if len(points) < min_points:       # too few to tell: the count is what is wrong
+        raise ValueError(f"{name}: the {role} has {len(points)} points; at least "
+                         f"{min_points} are needed")
+    space = guess_space(points, units, up_axis)
+    canonical = to_canonical(points, space)
+    problems = [message for category, message in body_problems(canonical, name, space,
+                                                               role=role)
+                if category is not TPoseWarning]
+    if problems and not force:
+        raise ValueError(f"{'; '.join(problems)}; nothing written (--force goes on anyway)")
+    height = float(np.ptp(canonical[:, 1]))
+    print(f"{role}: {UNIT_NAMES[space.units]} ({'given' if units else 'detected'}), "
+          f"{space.up_axis.upper()} up ({'given' if up_axis else 'detected'}), "
+          f"body {height:.2f} m tall ({name})")
+    return space
+
+
 def _retarget(args):
     start = time.perf_counter()
-    space = make_space(args.units, args.up_axis)
+    space = make_space(args.out_units, args.out_up)
     formats = parse_formats(args.format)
     foot_lock = None if args.no_foot_lock else FootLock()
     if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
@@ -202,24 +277,57 @@ def _retarget(args):
                                  foot_lock, args.mirror_source, not args.no_refine,
                                  not args.no_denoise, not args.no_rest_pose,
                                  not args.no_facing_check)
-    target_points, target_faces = read_target(args.target, space)
-    set_target(retargeter, target_points, target_faces, args.target, space)
+    # Both files read as they are (the canonical space changes nothing), then in their own.
+    as_in_file, target_faces = read_target(args.target, CANONICAL)
+    target_space = file_space(as_in_file, args.target, "target", args.target_units or args.units,
+                              args.target_up or args.up_axis, args.force, MIN_POINTS)
+    set_target(retargeter, to_canonical(as_in_file, target_space), target_faces, args.target,
+               target_space)
+    skeleton_map = args.skeleton_map and read_skeleton_map(args.skeleton_map)
+    reading = {"fps": args.fps, "points": args.points, "seed": args.seed,
+               "skeleton_map": skeleton_map}
+    raw = open_source(args.source, CANONICAL, **reading)
+    if raw.count == 0:
+        raise ValueError(f"{raw.path}: holds no frames")
+    frame_0 = next(iter(raw.frames))
+    source_space = file_space(frame_0, raw.frame_name(0), "source",
+                              args.source_units or args.units, args.source_up or args.up_axis,
+                              args.force, MIN_POINTS if raw.kind == "points" else 1)
+    if args.points and len(frame_0) < args.points:
+        warnings.warn(f"{raw.frame_name(0)}: {len(frame_0)} points, fewer than --points "
+                      f"{args.points}: clouds that small are used whole", InputWarning)
 
     def open_at(first):
-        return open_source(args.source, space, fps=args.fps, points=args.points,
-                           seed=args.seed, start=first)
+        return open_source(args.source, source_space, start=first, **reading)
 
     source = retarget_to_files(retargeter, open_at, args.out, formats, space,
-                               {"points": args.points, "seed": args.seed},
+                               {"points": args.points, "seed": args.seed,
+                                "skeleton_map": skeleton_map},
                                resume=args.resume, overwrite=args.overwrite)
-    print(f"retargeted {source.count} frames at {source.fps:g} fps in "
+    print(f"retargeted {frames_text(source.count)} at {source.fps:g} fps in "
           f"{time.perf_counter() - start:.1f} s; wrote "
           f"{_written(args.out, formats, source.count)}")
 
 
+def _inspect(args):
+    motion = read_bvh(args.bvh)
+    skeleton_map = args.skeleton_map and read_skeleton_map(args.skeleton_map)
+    scheme, skeleton = skeleton_of(motion, skeleton_map, str(args.bvh))
+    joints, _ = canonical_world(motion, skeleton, str(args.bvh))
+    space = guess_space(joints[0])
+    print(f"{args.bvh}: {len(motion.names)} joints, {frames_text(motion.num_frames)} at "
+          f"{motion.fps:g} fps; skeleton {scheme}; {UNIT_NAMES[space.units]}, "
+          f"{space.up_axis.upper()} up (detected)")
+    print("\n".join(mapping_lines(skeleton, motion.names)))
+
+
+def _bodies(args):
+    print("\n".join(body_lines()))
+
+
 def _render(args):
     count = render(args.result, args.out)
-    print(f"drew {count} frames into {args.out}")
+    print(f"drew {frames_text(count)} into {args.out}")
 
 
 def _demo(args):
@@ -242,8 +350,20 @@ def _demo(args):
                               overwrite=True, demo=True).count
     clouds = load_sample()[0].frames                # a fresh pass over the source clouds
     render(out / "result.npz", out / "preview.png", source_points=clouds)
-    print(f"retargeted {count} frames in {time.perf_counter() - start:.1f} s; wrote "
+    print(f"retargeted {frames_text(count)} in {time.perf_counter() - start:.1f} s; wrote "
           f"{_written(out, FORMATS, count)}, preview.png")
+
+
+def _warmup(args):
+    start = time.perf_counter()
+    retargeter = load_retargeter(args.weights)
+    _, target_points, target_faces, _ = load_sample()
+    retargeter.set_target(target_points, target_faces)
+    for mirror_source, skeleton in ((False, False), (True, False), (False, True)):
+        retargeter.mirror_source = mirror_source
+        retargeter.warm_up(skeleton)
+    print(f"kernels ready in {time.perf_counter() - start:.1f} s; later runs load them from "
+          "numba's cache")
 
 
 def int_at_least(minimum):
@@ -268,27 +388,40 @@ def positive_float(text):
     return value
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (the usage of a command with twenty
+    options buried the message), pointing at ``--help``; exit status 2 as argparse's."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrors(
         prog="minretarget", description="Correspondence-free online human motion retargeting: "
         "make a T-pose target body perform a source motion.")
     parser.add_argument("--version", action="version", version=f"minretarget {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     weights_help = "weights .npz (default: the weights shipped with minretarget)"
+    threads_help = ("BLAS threads (default 1: more are faster only on an idle machine, and "
+                    "several times slower on a shared one)")
 
     demo = commands.add_parser("demo", help="retarget the shipped sample, write every output "
                                "and a preview")
     demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     demo.add_argument("--weights", default=None, help=weights_help)
+    demo.add_argument("--threads", type=int_at_least(1), default=1, help=threads_help)
     demo.set_defaults(run=_demo)
 
     retarget = commands.add_parser(
         "retarget", help="retarget a motion onto a target body",
         description="Retarget SOURCE (a folder of per-frame .ply/.obj/.xyz/.npy point clouds, "
         "a .npy/.npz array (T, P, 3) of frames, or a .bvh skeleton motion) onto TARGET (a "
-        ".ply/.obj mesh or point cloud, or a .xyz/.npy (V, 3) file, in T-pose).")
+        ".ply/.obj mesh or point cloud, a .xyz/.npy (V, 3) file, a .npz holding "
+        "target_points (a result's), points or vertices, with their faces, in T-pose; or the "
+        "name of a shipped body: minretarget bodies).")
     retarget.add_argument("source", help="SOURCE motion")
-    retarget.add_argument("target", help="TARGET body in T-pose")
+    retarget.add_argument("target", help="TARGET body in T-pose, or a shipped body's name")
     retarget.add_argument("--out", required=True, help="output folder")
     retarget.add_argument("--format", default=DEFAULT_FORMATS,
                           help=f"comma-separated outputs among {','.join(FORMATS)} "
@@ -296,18 +429,36 @@ def build_parser():
     retarget.add_argument("--fps", type=positive_float, default=None,
                           help="source frame rate (default 30 for clouds, the header's for "
                           "BVH, which is resampled to 30)")
-    retarget.add_argument("--up-axis", choices=tuple(UP_AXES), default="y",
-                          help="up axis of the input and output files (z: Z up, facing -Y); "
-                          ".glb is always Y up")
-    retarget.add_argument("--units", choices=tuple(UNITS), default="m",
-                          help="length unit of the input and output files; .glb is always m")
-    retarget.add_argument("--points", type=int_at_least(1), default=None,
+    for role in ("source", "target"):
+        retarget.add_argument(f"--{role}-units", choices=tuple(UNITS), default=None,
+                              help=f"length unit of the {role.upper()} file (default: told "
+                              "from the body's size)")
+        retarget.add_argument(f"--{role}-up", choices=tuple(UP_AXES), default=None,
+                              help=f"up axis of the {role.upper()} file (z: Z up, facing -Y; "
+                              "default: told from the body's shape)")
+    retarget.add_argument("--units", choices=tuple(UNITS), default=None,
+                          help="length unit of both input files")
+    retarget.add_argument("--up-axis", choices=tuple(UP_AXES), default=None,
+                          help="up axis of both input files")
+    retarget.add_argument("--force", action="store_true",
+                          help="go on when an input body, in its units and up axis, is not a "
+                          "person's size or lies along its up axis (default: refused)")
+    retarget.add_argument("--skeleton-map", metavar="FILE.json", default=None,
+                          help='a BVH source\'s {"canonical joint": "its joint", ...} where '
+                          "its names do not tell (minretarget inspect shows the mapping)")
+    retarget.add_argument("--out-units", choices=tuple(UNITS), default="m",
+                          help="length unit of the outputs (default m); .glb is always m")
+    retarget.add_argument("--out-up", choices=tuple(UP_AXES), default="y",
+                          help="up axis of the outputs (default y); .glb is always Y up")
+    retarget.add_argument("--points", type=int_at_least(MIN_POINTS), default=None,
                           help="resample every source cloud to N points (a random subset, "
-                          "seeded)")
+                          "seeded; a mesh frame: N drawn evenly over its surface, default "
+                          f"{MESH_POINTS})")
     retarget.add_argument("--seed", type=int_at_least(0), default=0,
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=weights_help)
+    retarget.add_argument("--threads", type=int_at_least(1), default=1, help=threads_help)
     retarget.add_argument("--no-smoothing", action="store_true",
                           help="do not smooth the source skeleton of each point cloud over "
                                "time (default: smoothed against jitter; the denoiser still "
@@ -357,6 +508,22 @@ def build_parser():
     preview.add_argument("result", help="a result.npz written by retarget or demo")
     preview.add_argument("--out", required=True, help="FILE.png (a strip) or FILE.gif")
     preview.set_defaults(run=_render)
+
+    bodies = commands.add_parser("bodies", help="list the target bodies that ship with "
+                                 "minretarget (a TARGET may name one)")
+    bodies.set_defaults(run=_bodies)
+
+    inspect = commands.add_parser("inspect", help="show how a BVH's joints map onto the 22 "
+                                  "canonical joints")
+    inspect.add_argument("bvh", help="a .bvh or .bvh.gz file")
+    inspect.add_argument("--skeleton-map", metavar="FILE.json", default=None,
+                         help="as for retarget")
+    inspect.set_defaults(run=_inspect)
+
+    warmup = commands.add_parser("warmup", help="compile the kernels (about 30 s, once per "
+                                 "machine and release: later runs load them from a cache)")
+    warmup.add_argument("--weights", default=None, help=weights_help)
+    warmup.set_defaults(run=_warmup)
     return parser
 
 
@@ -371,6 +538,13 @@ def _print_warning(message, category, filename, lineno, file=None, line=None):
         print(text, file=sys.stderr)
     else:
         tqdm.write(text, file=sys.stderr)
+
+
+COMPILING = "Compiling kernels once (about 30 s; cached afterwards)"
+
+
+def _compiling():
+    print(COMPILING, file=sys.stderr, flush=True)
 
 
 def _kept(args):
@@ -389,7 +563,9 @@ def main(argv=None):
     MINRETARGET_TRACEBACK=1."""
     args = build_parser().parse_args(argv)
     try:
-        with warnings.catch_warnings():
+        threads = getattr(args, "threads", None)
+        with warnings.catch_warnings(), on_first_compile(_compiling), (
+                contextlib.nullcontext() if threads is None else blas_threads(threads)):
             warnings.simplefilter("always", InputWarning)
             warnings.showwarning = _print_warning
             args.run(args)

@@ -2,7 +2,8 @@
 
 The core (``Retargeter`` and the stages) needs NumPy, numba and SciPy only. File formats and
 previews need the ``cli`` extra (``pip install "minretarget[cli]"``): trimesh reads and writes
-PLY and OBJ, matplotlib (with its Pillow) draws PNG and GIF previews, tqdm shows progress.
+PLY and OBJ, matplotlib (with its Pillow) draws PNG and GIF previews, tqdm shows progress,
+threadpoolctl sets the BLAS threads.
 """
 import importlib
 

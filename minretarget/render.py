@@ -7,8 +7,10 @@ Drawn with matplotlib's Agg canvas (no display, no global pyplot state), orthogr
 from the front-left (``AZIMUTH`` about +Y, canonical axes; the body faces +Z), each panel
 centred on that frame's pelvis. The source is drawn as its skeleton (the joints SKR found, or
 the BVH's), over its point cloud when ``source_points`` are given; the result as its posed
-points shaded by depth, under its skeleton, and a reference skeleton (e.g. the ground truth)
-over it when ``truth_joints`` are given. Needs the ``cli`` extra (matplotlib, Pillow).
+surface, each triangle lit from the viewer's side and drawn far to near (its points shaded by
+depth if the target has no faces), under its skeleton, and a reference skeleton (e.g. the
+ground truth) over it when ``truth_joints`` are given. Needs the ``cli`` extra (matplotlib,
+Pillow).
 """
 import io
 import math
@@ -29,6 +31,9 @@ STRIP_FRAMES = 6
 MAX_GIF_FRAMES = 150
 _SOURCE_COLOR, _RESULT_COLOR, _TRUTH_COLOR = "tab:blue", "tab:orange", "tab:green"
 _RESULT_KEYS = ("joints", "source_joints", "vertices", "fps", "units", "up_axis")
+# Toward the light: the viewer's side, raised (canonical axes, unit length).
+_LIGHT = np.array([math.sin(math.radians(AZIMUTH)), 0.5, math.cos(math.radians(AZIMUTH))]) / \
+    math.sqrt(1.25)
 
 
 def project(points, azimuth=AZIMUTH):
@@ -49,9 +54,9 @@ def _selected_frames(count, suffix):
 
 
 def _collect(result, vertices, source_points, keep, truth_joints=None):
-    """The drawn frames' arrays, canonical: list of dicts (joints, source_joints, vertices,
-    source_points or None, truth_joints or None); only these frames' vertices are ever held in
-    memory."""
+    """The drawn frames' arrays, canonical: list of dicts (joints, source_joints, vertices (a
+    subset), surface (all of them, if the target has faces, else None), source_points or None,
+    truth_joints or None); only these frames' vertices are ever held in memory."""
     space = make_space(str(result["units"]), str(result["up_axis"]))
     joints = to_canonical(result["joints"], space)
     source_joints = to_canonical(result["source_joints"], space)
@@ -61,9 +66,10 @@ def _collect(result, vertices, source_points, keep, truth_joints=None):
     for index, posed in enumerate(vertices):
         cloud = next(clouds) if clouds is not None else None
         if index in keep:
+            posed = to_canonical(np.asarray(posed), space)                     # (V, 3)
             frames.append({"index": index, "joints": joints[index],
-                           "source_joints": source_joints[index],
-                           "vertices": to_canonical(np.asarray(posed)[subset], space),
+                           "source_joints": source_joints[index], "vertices": posed[subset],
+                           "surface": None if result["faces"] is None else posed,
                            "source_points": None if cloud is None else np.asarray(cloud),
                            "truth_joints": None if truth_joints is None
                            else np.asarray(truth_joints[index], dtype=np.float64)})
@@ -94,10 +100,28 @@ def _skeleton(axes, joints, color, lw=1.5, size=6):
     return screen
 
 
-def _draw(axes, joints, points, color, limits, shaded, truth=None):
-    """One panel: points (shaded by depth or grey), then the skeleton, centred on the pelvis."""
+def _surface(axes, vertices, faces):
+    """Draw a mesh: (V, 3) canonical vertices, (F, 3) faces; each triangle grey by how
+    squarely it faces the light (either side: any winding), far ones first."""
+    from matplotlib.collections import PolyCollection
+
+    screen, depth = project(vertices)
+    corners = vertices[faces]                                                # (F, 3, 3)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    lit = np.abs(normals @ _LIGHT) / (np.linalg.norm(normals, axis=1) + 1e-12)   # (F,)
+    order = np.argsort(depth[faces].mean(axis=1))
+    grey = np.repeat((0.25 + 0.7 * lit[order])[:, None], 3, axis=1)           # (F, 3) RGB
+    axes.add_collection(PolyCollection(screen[faces[order]], facecolors=grey,
+                                       edgecolors="none", antialiaseds=False))
+
+
+def _draw(axes, joints, points, color, limits, shaded, truth=None, surface=None, faces=None):
+    """One panel: a surface (``surface`` vertices and ``faces``), or points (shaded by depth
+    or grey), then the skeleton, centred on the pelvis."""
     half, (low, high) = limits
-    if points is not None:
+    if surface is not None:
+        _surface(axes, surface, faces)
+    elif points is not None:
         screen, depth = project(points)
         order = np.argsort(depth)                          # far points first, near on top
         if shaded:
@@ -120,7 +144,8 @@ def _draw(axes, joints, points, color, limits, shaded, truth=None):
 
 def _load_result(path):
     """A ``result.npz``'s arrays that a preview draws, checked: ({joints, source_joints (T, J,
-    3) float32, fps float, units, up_axis}, its vertices as ``NpzFrames`` (T, V, 3)).
+    3) float32, fps float, units, up_axis, faces (F, 3) or None}, its vertices as
+    ``NpzFrames`` (T, V, 3)).
     ValueError naming the file and what is wrong."""
     missing = set(_RESULT_KEYS) - set(npz_members(path))
     if missing:
@@ -129,6 +154,7 @@ def _load_result(path):
     try:
         with np.load(path, allow_pickle=False) as data:
             result = {key: data[key] for key in _RESULT_KEYS if key != "vertices"}
+            faces = data["target_faces"] if "target_faces" in data.files else None
     except ARCHIVE_ERRORS as error:
         raise ValueError(f"{path}: not a readable .npz ({error})") from None
     vertices = NpzFrames(path, "vertices")
@@ -142,6 +168,12 @@ def _load_result(path):
     count = len(result["joints"])
     if count == 0:
         raise ValueError(f"{path}: holds no frames")
+    if faces is not None and len(faces) and (
+            faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu"
+            or faces.min() < 0 or faces.max() >= vertices.shape[1]):
+        raise ValueError(f"{path}: target_faces must be (F, 3) indices of its vertices, got "
+                         f"{faces.dtype} {faces.shape}")
+    result["faces"] = faces if faces is not None and len(faces) else None
     if not 0 < result["fps"] < math.inf:
         raise ValueError(f"{path}: fps must be positive and finite, got {result['fps']}")
     lengths = {"source_joints": len(result["source_joints"]), "vertices": len(vertices)}
@@ -190,7 +222,8 @@ def render(result_path, out_path, source_points=None, truth_joints=None, title=N
                   source_limits, shaded=False)
         else:
             _draw(axes, frame["joints"], frame["vertices"], _RESULT_COLOR, result_limits,
-                  shaded=True, truth=frame["truth_joints"])
+                  shaded=True, truth=frame["truth_joints"], surface=frame["surface"],
+                  faces=result["faces"])
 
     # Panel heights follow each row's aspect (vertical range over width), panels 2 inches wide.
     heights = [(limits[1][1] - limits[1][0]) / (2 * limits[0])

@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 
-from .units import CANONICAL, UNITS
+from .units import CANONICAL, UNITS, make_space
 
 
 def as_float32_array(value, name, shape, finite=True):
@@ -92,15 +92,38 @@ class TPoseWarning(InputWarning):
 
 
 HUMAN_HEIGHT = (0.3, 3.0)    # metres: a toddler to a giant; outside it, suspect the units
+# (the ranges of metres, centimetres and millimetres do not overlap, so the units of a file
+# can be told from its body's size: ``guess_space``)
 LYING_RATIO = 2.0            # Z extent over Y extent above which the body lies along Z
 # Arm span over height: about 1 in a T-pose, 0.77 with the arms 45 degrees down, 0.35 along
 # the body (shoulders 0.2 and arms 0.4 of the height).
 TPOSE_MIN_SPAN = 0.8
-_UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
+UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
 
 
-def check_body(points, name, space=CANONICAL, tpose=False):
-    """Warn about a body whose size or orientation suggests wrong units, up axis or pose.
+def guess_space(points, units=None, up_axis=None):
+    """The units and up axis a file's body is most likely in.
+
+    Args:
+        points: (N, 3) points or joints of one body as in the file (its units and axes).
+        units, up_axis: the file's, if known (kept as given), else None to guess: the up
+            axis is Z if the body is longer along Z than along Y, else Y; the units are those
+            in which its largest extent is a person's (``HUMAN_HEIGHT``), or metres if none
+            is (``body_problems`` then says so).
+    Returns:
+        ``units.Space``.
+    """
+    extent = np.ptp(np.asarray(points, dtype=np.float64), axis=0)           # (3,) x, y, z
+    up_axis = up_axis or ("z" if extent[2] > extent[1] else "y")
+    if units is None:
+        low, high = HUMAN_HEIGHT
+        units = next((u for u, scale in UNITS.items() if low <= extent.max() * scale <= high),
+                     "m")
+    return make_space(units, up_axis)
+
+
+def body_problems(points, name, space=CANONICAL, tpose=False, role=None):
+    """What about a body suggests wrong units, up axis or pose (``check_body``).
 
     Args:
         points: (N, 3) canonical points or joints of one body (metres, +Y up), finite.
@@ -108,31 +131,44 @@ def check_body(points, name, space=CANONICAL, tpose=False):
         space: the ``units.Space`` the file was read with, so the advice names the option
             to change (the Python API passes canonical data: the default).
         tpose: also check that the arms are roughly horizontal (targets only).
-    Warns:
-        UnitsWarning, UpAxisWarning, TPoseWarning; each at most once per call.
+        role: "source" or "target": the advice names ``--source-units`` ... rather than
+            ``--units`` and ``--up-axis``.
+    Returns:
+        [(category, message)]: UnitsWarning, UpAxisWarning, TPoseWarning, each at most once.
     """
+    units_option, up_option = (f"--{role}-units", f"--{role}-up") if role else (
+        "--units", "--up-axis")
     extent = np.ptp(np.asarray(points, dtype=np.float64), axis=0)          # (3,) x, y, z
     height = float(extent.max())
     low, high = HUMAN_HEIGHT
+    problems = []
     if not low <= height <= high:
         in_file = height / space.scale
         guesses = [u for u, scale in UNITS.items() if u != space.units
                    and low <= in_file * scale <= high]
-        advice = (f"looks like {_UNIT_NAMES[guesses[0]]} (use --units {guesses[0]}, or "
+        advice = (f"looks like {UNIT_NAMES[guesses[0]]} (use {units_option} {guesses[0]}, or "
                   "scale the points to metres)" if guesses else "check its units")
         size = f"{height:.4g} m" + (f" ({in_file:.4g} {space.units})" if space.units != "m"
                                     else "")
-        warnings.warn(f"{name}: the body is {size} tall (its largest extent), not a "
-                      f"person's {low:g} to {high:g} m: {advice}", UnitsWarning, stacklevel=3)
+        problems.append((UnitsWarning, f"{name}: the body is {size} tall (its largest "
+                         f"extent), not a person's {low:g} to {high:g} m: {advice}"))
     if extent[2] > LYING_RATIO * extent[1]:
         other = "z" if space.up_axis == "y" else "y"
-        warnings.warn(f"{name}: the body lies along Z ({extent[2]:.4g} m along Z, "
-                      f"{extent[1]:.4g} m along Y, up axis {space.up_axis.upper()}): its up "
-                      f"axis looks like {other.upper()} (use --up-axis {other})",
-                      UpAxisWarning, stacklevel=3)
+        problems.append((UpAxisWarning, f"{name}: the body lies along Z ({extent[2]:.4g} m "
+                         f"along Z, {extent[1]:.4g} m along Y, up axis "
+                         f"{space.up_axis.upper()}): its up axis looks like {other.upper()} "
+                         f"(use {up_option} {other})"))
     elif tpose and extent[0] < TPOSE_MIN_SPAN * extent[1]:
-        warnings.warn(f"{name}: the arms look far from horizontal: the body is "
-                      f"{extent[0]:.4g} m wide (X) for {extent[1]:.4g} m tall (Y), a ratio of "
-                      f"{extent[0] / extent[1]:.2f} where a T-pose has about 1: the target "
-                      "should be in T-pose (arms horizontal, facing +Z, left hand toward +X)",
-                      TPoseWarning, stacklevel=3)
+        problems.append((TPoseWarning, f"{name}: the arms look far from horizontal: the body "
+                         f"is {extent[0]:.4g} m wide (X) for {extent[1]:.4g} m tall (Y), a "
+                         f"ratio of {extent[0] / extent[1]:.2f} where a T-pose has about 1: "
+                         "the target should be in T-pose (arms horizontal, facing +Z, left "
+                         "hand toward +X)"))
+    return problems
+
+
+def check_body(points, name, space=CANONICAL, tpose=False, role=None):
+    """Warn about a body whose size or orientation suggests wrong units, up axis or pose:
+    each of ``body_problems(points, name, space, tpose, role)``."""
+    for category, message in body_problems(points, name, space, tpose, role):
+        warnings.warn(message, category, stacklevel=3)

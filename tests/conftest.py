@@ -1,4 +1,5 @@
 import dataclasses
+import os
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,15 @@ from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from minretarget.weights import load_weights
 
 GOLDEN = Path(__file__).parent / "golden"
+# The CMU motion capture (README, Data): MINRETARGET_CMU_DIR, else beside the repository.
+CMU_DIR = Path(os.environ.get("MINRETARGET_CMU_DIR")
+               or Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu")
+
+
+def needs_cmu(path):
+    """Skip unless the CMU file ``path`` exists, saying where it was looked for."""
+    return pytest.mark.skipif(not path.exists(), reason=f"CMU data not found: {path} (set "
+                              "MINRETARGET_CMU_DIR to the folder holding cgspeed/)")
 
 
 @pytest.fixture(scope="session")

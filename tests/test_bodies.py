@@ -175,3 +175,27 @@ def test_posed_clouds_lie_on_the_posed_surface():
     np.testing.assert_allclose(local[..., 2], 0, atol=1e-6)
     again, _ = bodies.posed_clouds(body, rotations, root, 100, np.random.default_rng(0))
     np.testing.assert_array_equal(clouds, again)
+
+
+def test_body_command_writes_a_t_pose_target(tmp_path, capsys):
+    """``python -m training.data body``: anny's T-pose with the project's settings, as a
+    TARGET file (issue 41: making one took copying a private setting)."""
+    from minretarget.formats.mesh import read_points
+    from minretarget.validation import body_problems
+    from training.data.__main__ import main
+    main(["body", "--out", str(tmp_path / "kid.obj"), "--age", "0.25", "--body-cache",
+          str(tmp_path / "cache")])
+    assert "a T-pose body 1.2" in capsys.readouterr().out
+    points, faces = read_points(tmp_path / "kid.obj")
+    assert faces is not None and 1.1 < np.ptp(points[:, 1]) < 1.35
+    assert body_problems(points, "kid.obj", tpose=True) == []
+
+
+def test_the_shipped_bodies_are_the_listed_phenotypes(tmp_path):
+    """minretarget/data/bodies.npz is what ``python -m training.data bodies`` writes."""
+    from minretarget.bodies import BODIES
+    from training.data.sample import build_bodies
+    arrays = build_bodies(cache_dir=tmp_path)
+    with np.load(BODIES, allow_pickle=False) as shipped:
+        for key, array in arrays.items():
+            np.testing.assert_array_equal(shipped[key], array, err_msg=key)

@@ -7,10 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 
-from conftest import GOLDEN, with_rest_pose
+from conftest import CMU_DIR, GOLDEN, needs_cmu, with_rest_pose
 from minretarget import Retargeter
 from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
@@ -20,8 +21,8 @@ from minretarget import retargeter as retargeter_module
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.skeletons import depth_first_order
-from minretarget.sources import SAMPLE, load_sample, open_source
-from minretarget.units import (from_canonical, make_space, rotations_to_canonical,
+from minretarget.sources import MESH_POINTS, SAMPLE, load_sample, open_source
+from minretarget.units import (CANONICAL, from_canonical, make_space, rotations_to_canonical,
                                to_canonical)
 from minretarget.weights import load_weights, save_weights
 from test_glb import node_world_matrices
@@ -29,7 +30,7 @@ from test_glb import node_world_matrices
 trimesh = pytest.importorskip("trimesh")
 WEIGHTS = str(GOLDEN / "tiny_weights.npz")
 ROOT = Path(__file__).resolve().parent.parent
-CMU_WALK = ROOT.parent / "shared" / "data" / "cmu" / "cgspeed" / "08" / "08_01.bvh.gz"
+CMU_WALK = CMU_DIR / "cgspeed" / "08" / "08_01.bvh.gz"
 FRAMES, POINTS = 6, 160
 # Natural order differs from plain string order here (f10 after f4), and every reader is used.
 FOLDER_NAMES = ["f1.npy", "f2.xyz", "f3.ply", "f4.obj", "f10.npy", "f11.xyz"]
@@ -51,7 +52,8 @@ def inputs(tmp_path_factory):
     with np.load(GOLDEN / "tiny_stream.npz") as data:
         counts = data["source_counts"][:FRAMES]
         clouds = np.split(data["source_points"][:counts.sum()], np.cumsum(counts)[:-1])
-    frames = np.stack([c[:POINTS] for c in clouds]).astype(np.float32)      # (T, P, 3)
+    # (T, P, 3), scaled from the golden stream's 4.3 m to a person's height
+    frames = (np.stack([c[:POINTS] for c in clouds]) * 0.4).astype(np.float32)
     mesh = trimesh.creation.icosphere(subdivisions=2)
     # Body-sized and as wide as tall, like a T-pose, so that no warning fires.
     target = (mesh.vertices * [0.85, 0.9, 0.2] + [0, 0.9, 0]).astype(np.float32)
@@ -184,6 +186,22 @@ def test_foot_leash_refuses_bad_settings(inputs, tmp_path, capsys, options, mess
     assert not (tmp_path / "o").exists()
 
 
+def test_one_frame_is_one_frame(inputs, tmp_path, capsys):
+    np.save(tmp_path / "one.npy", inputs["frames"][:1])
+    assert run("retarget", tmp_path / "one.npy", inputs["dir"] / "target.ply", "--out",
+               tmp_path / "out", "--format", "npz", "--weights", WEIGHTS) == 0
+    assert "retargeted 1 frame at 30 fps" in capsys.readouterr().out
+
+
+def test_points_over_a_cloud_s_size_is_said(inputs, tmp_path, capsys):
+    """Issue 41: --points 4096 on smaller clouds silently did nothing."""
+    assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+               tmp_path / "out", "--format", "npz", "--points", 200, "--weights", WEIGHTS) == 0
+    [warning] = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert warning.endswith(f"frames.npy: frame 0: {POINTS} points, fewer than --points 200: "
+                            "clouds that small are used whole")
+
+
 def test_points_option_takes_a_seeded_subset(inputs):
     out = inputs["dir"] / "out_points"
     for _ in range(2):                                     # twice: the same bytes of arrays
@@ -201,10 +219,11 @@ def test_points_option_takes_a_seeded_subset(inputs):
 
 
 def test_bvh_source_skips_skr(inputs, folder_run, capsys):
-    """Our own result.bvh as a SOURCE: its (canonical-name) joints are the source skeleton."""
+    """Our own result.bvh as a SOURCE: its (canonical-name) joints are the source skeleton
+    (the tiny model's, about 3 m tall: --force)."""
     out = inputs["dir"] / "out_bvh"
     assert run("retarget", folder_run / "result.bvh", inputs["dir"] / "target.ply", "--out", out,
-               "--format", "npz", "--weights", WEIGHTS) == 0
+               "--format", "npz", "--weights", WEIGHTS, "--force") == 0
     result, previous = load(out / "result.npz"), load(folder_run / "result.npz")
     np.testing.assert_allclose(result["source_joints"], previous["joints"], atol=1e-4)
     capsys.readouterr()
@@ -213,17 +232,116 @@ def test_bvh_source_skips_skr(inputs, folder_run, capsys):
     assert "--points applies to point-cloud sources" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not CMU_WALK.exists(), reason="CMU data not present")
-def test_cmu_bvh_source_in_centimetres(inputs):
+@needs_cmu(CMU_WALK)
+def test_cmu_bvh_source_in_centimetres(inputs, capsys):
     out = inputs["dir"] / "out_cmu"
     assert run("retarget", CMU_WALK, inputs["dir"] / "target.ply", "--out", out, "--format",
-               "npz", "--units", "cm", "--fps", 120, "--weights", WEIGHTS) == 0
+               "npz", "--fps", 120, "--weights", WEIGHTS) == 0
+    assert f"source: centimetres (detected), Y up (detected), body 1.45 m tall ({CMU_WALK}: " \
+        "frame 0)" in capsys.readouterr().out
     result = load(out / "result.npz")
     expected_frames = resample(read_bvh(CMU_WALK), fps=30, source_fps=120).num_frames
     assert result["source_joints"].shape == (expected_frames, NUM_JOINTS, 3)
-    assert result["fps"] == 30 and result["units"] == "cm"
-    pelvis_height = result["source_joints"][:, 0, 1] / 100                    # cm -> m
-    assert 0.7 < np.median(pelvis_height) < 1.0
+    assert result["fps"] == 30 and result["units"] == "m"
+    assert 0.7 < np.median(result["source_joints"][:, 0, 1]) < 1.0              # pelvis, m
+
+
+@needs_cmu(CMU_WALK)
+@pytest.mark.parametrize("up_axis", ["y", "z"])
+def test_cmu_bvh_onto_a_metre_body_with_no_options(tmp_path, capsys, up_axis):
+    """Issue 41's first job: a CMU walk (centimetres) onto the sample's target (metres, as a
+    Y-up or a Z-up mesh), with the shipped weights and no option: each file's units and axes
+    are told apart, the feet stay on the target's floor and the target keeps its height
+    (read as one setting, the source was 145 m tall and the result floated 0.44 m up)."""
+    _, target, faces, _ = load_sample()
+    write_mesh(tmp_path / "target.obj", from_canonical(target, make_space("m", up_axis)), faces)
+    assert run("retarget", CMU_WALK, tmp_path / "target.obj", "--out", tmp_path / "out",
+               "--format", "npz,bvh") == 0
+    out = capsys.readouterr().out
+    assert f"target: metres (detected), {up_axis.upper()} up (detected), body 1.50 m" in out
+    assert "source: centimetres (detected), Y up (detected), body 1.45 m tall" in out
+    result = load(tmp_path / "out" / "result.npz")
+    assert result["units"] == "m" and result["up_axis"] == "y"
+    np.testing.assert_allclose(result["target_points"], target, atol=1e-6)
+    lowest = np.abs(result["vertices"][..., 1].min(axis=1))                 # (T,) metres
+    assert np.median(lowest) < 0.03 and lowest.max() < 0.08, lowest
+    heights = np.ptp(result["vertices"][..., 1], axis=1)                    # (T,) walking
+    assert 0.93 < heights.min() / np.ptp(target[:, 1]) and heights.max() < np.ptp(target[:, 1])
+    positions, _ = world_transforms(read_bvh(tmp_path / "out" / "result.bvh"))    # m, Y up
+    np.testing.assert_allclose(positions, result["joints"][:, depth_first_order()], atol=1e-4)
+
+
+def test_a_body_out_of_scale_is_refused_before_writing(inputs, tmp_path, capsys):
+    """--units cm on a metre target: refused, nothing written; --force goes on, warning."""
+    args = ("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+            tmp_path / "out", "--format", "npz", "--units", "cm", "--weights", WEIGHTS)
+    assert run(*args) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "target.ply: the body is 0.018 m (1.8 cm) tall" in err
+    assert "looks like metres (use --target-units m" in err and "--force goes on" in err
+    assert not (tmp_path / "out").exists()
+    assert run(*args, "--force") == 0
+    assert "minretarget: warning: " in capsys.readouterr().err
+    assert (tmp_path / "out" / "result.npz").exists()
+
+
+def test_a_mesh_frame_is_a_seeded_even_sample_of_its_surface(tmp_path):
+    """A unit square of two triangles whose vertices crowd in a corner (tiny triangles there):
+    its points spread evenly, MESH_POINTS of them or --points, the same for a frame however
+    a pass starts (--resume)."""
+    corner = np.random.default_rng(0).uniform(0, 0.05, (300, 3)) * [1, 1, 0]
+    vertices = np.concatenate([[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], corner])
+    faces = np.concatenate([[[0, 1, 2], [0, 2, 3]], 4 + np.arange(300).reshape(100, 3)])
+    (tmp_path / "frames").mkdir()
+    for name in ("a.ply", "b.ply"):
+        write_mesh(tmp_path / "frames" / name, vertices, faces)
+    clouds = list(open_source(tmp_path / "frames", CANONICAL).frames)
+    assert clouds[0].shape == (MESH_POINTS, 3)
+    np.testing.assert_allclose(clouds[0].mean(axis=0), [0.5, 0.5, 0], atol=0.03)
+    assert not np.array_equal(clouds[0], clouds[1])                 # a fresh draw a frame
+    [second] = open_source(tmp_path / "frames", CANONICAL, start=1).frames
+    np.testing.assert_array_equal(second, clouds[1])
+    assert next(open_source(tmp_path / "frames", CANONICAL, points=100).frames).shape == (100, 3)
+
+
+def test_mesh_frames_are_sampled_over_their_surface(tmp_path):
+    """Issue 41: the demo's own output meshes fed back as a source (vertices crowded at the
+    hands and head) had their legs swapped in frames 1 to 6 (ankles 0.2 to 0.6 m from the
+    truth, nearer the other ankle's), the vertices taken as an even sampling."""
+    source, target, faces, _ = load_sample()
+    retargeter = Retargeter.from_weights(warn=False)
+    retargeter.set_target(target, faces)
+    truth = [frame for frame, _ in zip(retargeter.run(source.frames), range(8))]
+    (tmp_path / "meshes").mkdir()
+    for t, frame in enumerate(truth):
+        write_mesh(tmp_path / "meshes" / f"frame_{t:06d}.ply", frame.vertices, faces)
+    write_mesh(tmp_path / "target.ply", target, faces)
+    assert run("retarget", tmp_path / "meshes", tmp_path / "target.ply", "--out",
+               tmp_path / "out", "--format", "npz") == 0
+    seen = load(tmp_path / "out" / "result.npz")["source_joints"]              # (T, J, 3)
+    ankles = [JOINT_NAMES.index("left_ankle"), JOINT_NAMES.index("right_ankle")]
+    errors = np.linalg.norm(seen[:, ankles] - [frame.joints[ankles] for frame in truth], axis=-1)
+    assert errors.max() < 0.1, errors
+
+
+def test_npz_targets(inputs, folder_run, tmp_path, capsys):
+    """Issue 41: a .npz was refused as a target (though a source): a result's target, a
+    body's points and faces, one array; the body and faces as from the .ply."""
+    np.savez(tmp_path / "body.npz", vertices=inputs["target"], faces=inputs["faces"])
+    np.savez(tmp_path / "one.npz", inputs["target"])
+    np.savez(tmp_path / "two.npz", a=inputs["target"], b=inputs["target"])
+    expected = load(folder_run / "result.npz")["vertices"]
+    for target in (folder_run / "result.npz", tmp_path / "body.npz", tmp_path / "one.npz"):
+        out = tmp_path / target.stem
+        assert run("retarget", inputs["dir"] / "frames.npy", target, "--out", out,
+                   "--format", "npz", "--weights", WEIGHTS) == 0
+        result = load(out / "result.npz")
+        np.testing.assert_allclose(result["vertices"], expected, atol=1e-5)
+        assert len(result["target_faces"]) == (0 if target.stem == "one" else
+                                               len(inputs["faces"]))
+    assert run("retarget", inputs["dir"] / "frames.npy", tmp_path / "two.npz", "--out",
+               tmp_path / "x", "--weights", WEIGHTS) == 1
+    assert "two.npz: holds a, b; a target .npz holds one (V, 3) array" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -268,18 +386,35 @@ def test_every_output_reads_back(inputs, folder_run):
     assert len(trimesh.load(folder_run / "result.glb").geometry) == 1
 
 
-def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run):
-    """The same inputs as millimetre, Z-up files give the same motion, written back in
+def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run, capsys):
+    """The same inputs as millimetre, Z-up files give the same motion: told from the bodies
+    with no option, written in metres and +Y up; with the options, written back in
     millimetres and Z-up (the glb stays metres and Y-up)."""
     space = make_space("mm", "z")
     folder = inputs["dir"] / "mm_z"
     folder.mkdir()
     write_mesh(folder / "target.ply", from_canonical(inputs["target"], space), inputs["faces"])
     np.save(folder / "frames.npy", from_canonical(inputs["frames"], space))
+    assert run("retarget", folder / "frames.npy", folder / "target.ply", "--out",
+               folder / "detected", "--format", "npz,bvh", "--weights", WEIGHTS) == 0
+    assert capsys.readouterr().out.splitlines()[:2] == [
+        f"target: millimetres (detected), Z up (detected), body 1.80 m tall "
+        f"({folder / 'target.ply'})",
+        f"source: millimetres (detected), Z up (detected), body "
+        f"{np.ptp(inputs['frames'][0, :, 1]):.2f} m tall "
+        f"({folder / 'frames.npy'}: frame 0)"]
+    detected = load(folder / "detected" / "result.npz")
+    assert detected["units"] == "m" and detected["up_axis"] == "y"
+    positions, _ = world_transforms(read_bvh(folder / "detected" / "result.bvh"))  # m, Y up
+    np.testing.assert_allclose(positions, detected["joints"][:, depth_first_order()],
+                               atol=1e-4)               # issue 41: written Z-up like its input
+    np.testing.assert_allclose(detected["vertices"], load(folder_run / "result.npz")["vertices"],
+                               atol=1e-4)
     out = folder / "out"
     assert run("retarget", folder / "frames.npy", folder / "target.ply", "--out", out,
                "--format", "ply,npz,glb,bvh", "--units", "mm", "--up-axis", "z",
-               "--weights", WEIGHTS) == 0
+               "--out-units", "mm", "--out-up", "z", "--weights", WEIGHTS) == 0
+    assert "target: millimetres (given), Z up (given)" in capsys.readouterr().out
     metres, mm = load(folder_run / "result.npz"), load(out / "result.npz")
     assert mm["units"] == "mm" and mm["up_axis"] == "z"
     for key in ("vertices", "joints", "root", "source_joints", "target_points",
@@ -298,6 +433,51 @@ def test_units_and_up_axis_convert_inputs_and_outputs(inputs, folder_run):
                                accessor_array(*glb_m, position), atol=1e-6)
 
 
+@pytest.mark.parametrize("command", ["retarget", "demo"])
+def test_blas_runs_one_thread_unless_told(monkeypatch, command):
+    """Every BLAS library, SciPy's that the kernels call included, for the command's run only
+    (issue 41: two busy-waiting threads made a run on a shared machine 3 to 4 times slower)."""
+    from threadpoolctl import threadpool_info
+
+    def blas():
+        return {(info["filepath"], info["num_threads"]) for info in threadpool_info()
+                if info["user_api"] == "blas"}
+    seen = []
+    monkeypatch.setattr(cli, f"_{command}", lambda args: seen.append(blas()))
+    before = blas()
+    inputs = ("a.npy", "b.ply", "--out", "o") if command == "retarget" else ()
+    for extra in ((), ("--threads", "3")):
+        assert run(command, *inputs, *extra) == 0
+    assert [{threads for _, threads in libraries} for libraries in seen] == [{1}, {3}]
+    import scipy.linalg.cython_blas  # noqa: F401  (numba's BLAS: loaded, and limited, by then)
+    after = blas()
+    assert {path for path, _ in seen[0]} == {path for path, _ in after}
+    assert after >= before                                     # the limits are lifted
+
+
+def test_first_compile_is_said_once_before_the_progress_bar(inputs, monkeypatch, tmp_path,
+                                                             capsys):
+    """Issue 41: a cold cache showed as "1/68 [00:57<1:03:50, 57.17s/frame]" and no word.
+    Here the warm-up compiles two new kernels (cached or not, numba compiles those)."""
+    assert run("warmup", "--weights", WEIGHTS) == 0
+    assert "kernels ready in" in capsys.readouterr().out
+    warm_up = Retargeter.warm_up
+
+    def compiling_warm_up(self, skeleton=False):
+        numba.njit(lambda x: x + 1)(1)
+        numba.njit(lambda x: x + 2)(1)
+        warm_up(self, skeleton)
+    args = ("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
+            "--format", "npz", "--weights", WEIGHTS)
+    assert run(*args, "--out", tmp_path / "warm") == 0
+    assert cli.COMPILING not in capsys.readouterr().err
+    monkeypatch.setattr(Retargeter, "warm_up", compiling_warm_up)
+    assert run(*args, "--out", tmp_path / "cold") == 0
+    err = capsys.readouterr().err
+    assert err.count(cli.COMPILING) == 1
+    assert err.index(cli.COMPILING) < err.index("retargeting:")
+
+
 # ----------------------------------------------------------------------------- render, demo
 
 def test_render_png_and_gif(folder_run, capsys):
@@ -311,6 +491,24 @@ def test_render_png_and_gif(folder_run, capsys):
     assert "drew 6 frames" in capsys.readouterr().out
 
 
+def test_render_shades_the_surface(folder_run, tmp_path):
+    """Issue 41: the preview drew the result's vertices as dots; a mesh is now a surface (a
+    point cloud still dots), filling its outline."""
+    from PIL import Image
+    with np.load(folder_run / "result.npz", allow_pickle=False) as data:
+        result = dict(data)                     # the target standing still (the tiny model's
+    result["vertices"][:] = result["target_points"]            # poses crumple it)
+    np.savez(tmp_path / "mesh.npz", **result)
+    np.savez(tmp_path / "cloud.npz", **{**result, "target_faces": np.empty((0, 3), np.int64)})
+
+    def inked(name):                  # the fraction of the result row in grey (not skeleton)
+        assert run("render", tmp_path / name, "--out", tmp_path / "strip.png") == 0
+        with Image.open(tmp_path / "strip.png") as image:
+            rgb = np.asarray(image.convert("RGB"), dtype=int)[image.height // 2:]
+        return ((np.ptp(rgb, axis=-1) < 12) & (rgb.max(axis=-1) < 235)).mean()
+    assert inked("mesh.npz") > inked("cloud.npz") + 0.05         # about 0.13 against 0.05
+
+
 def test_render_refuses_a_malformed_result(folder_run, tmp_path, capsys):
     with np.load(folder_run / "result.npz", allow_pickle=False) as data:
         good = {key: data[key] for key in data.files}
@@ -318,7 +516,9 @@ def test_render_refuses_a_malformed_result(folder_run, tmp_path, capsys):
              "flat": (dict(joints=good["joints"][..., :2]),
                       r"joints must have shape (any, 22, 3), got (6, 22, 2)"),
              "short": (dict(joints=good["joints"][:3]), "with one T"),
-             "units": (dict(units=np.array("furlong")), "units must be one of m, cm, mm")}
+             "units": (dict(units=np.array("furlong")), "units must be one of m, cm, mm"),
+             "faces": (dict(target_faces=good["target_faces"] + 10**6),
+                       "target_faces must be (F, 3) indices of its vertices")}
     for name, (change, message) in cases.items():
         np.savez(tmp_path / f"{name}.npz", **{**good, **change})
         assert run("render", tmp_path / f"{name}.npz", "--out", tmp_path / "x.png") == 1
@@ -336,8 +536,13 @@ def test_negative_seed_is_refused_by_name(inputs, tmp_path, capsys):
         run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
             tmp_path / "o", "--seed", "-1")
     assert exit_.value.code == 2
-    assert "argument --seed: must be at least 0, got -1" in capsys.readouterr().err
+    assert capsys.readouterr().err == ("minretarget retarget: error: argument --seed: must be at "
+                                       "least 0, got -1 (see minretarget retarget --help)\n")
     assert not (tmp_path / "o").exists()
+    with pytest.raises(SystemExit):                  # --points, not the source, is too small
+        run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--out",
+            tmp_path / "o", "--points", "10")
+    assert "argument --points: must be at least 64, got 10" in capsys.readouterr().err
 
 
 @pytest.fixture
@@ -420,7 +625,7 @@ def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
     np.savez(tmp_path / "two.npz", a=np.zeros((2, 70, 3)), b=np.zeros((2, 70, 3)))
     cases = [(["retarget", tmp_path / "nowhere", inputs["dir"] / "target.ply"], "nowhere"),
              (["retarget", inputs["dir"] / "frames.npy", tmp_path / "flat.npy"],
-              "flat.npy: target"),
+              "flat.npy: the target has 5 points"),
              (["retarget", tmp_path / "flat.npy", inputs["dir"] / "target.ply"], "flat.npy"),
              (["retarget", tmp_path / "broken.npz", inputs["dir"] / "target.ply"],
               "broken.npz: not a readable .npz"),
@@ -435,6 +640,36 @@ def test_bad_input_gives_one_line_naming_the_file(inputs, tmp_path, capsys):
         err = capsys.readouterr().err
         assert code == 1 and message in err and "Traceback" not in err, (args, err)
         assert err.startswith("minretarget: error:") and err.count("\n") == 1
+
+
+def test_out_naming_a_file_and_a_failure_before_and_after_frames(inputs, tmp_path, capsys,
+                                                                  monkeypatch):
+    """Issue 41: --out naming a file printed "[Errno 17]"; a failure at frame 0 left an empty
+    --out; a failure midway did not say --resume."""
+    (tmp_path / "file").write_text("a user's")
+    args = ("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply", "--format",
+            "npz", "--weights", WEIGHTS, "--out")
+    assert run(*args, tmp_path / "file") == 1
+    assert "file: is a file; --out names the folder the outputs go into" in \
+        capsys.readouterr().err
+    step = Retargeter.step
+
+    def failing(after):
+        def fail(self, points):
+            if (0 if self.state is None else self.state.frames_seen) >= after:
+                raise ValueError("a damaged frame")
+            return step(self, points)
+        return fail
+    monkeypatch.setattr(Retargeter, "step", failing(0))
+    assert run(*args, tmp_path / "new") == 1
+    assert "frame 0: a damaged frame" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    monkeypatch.setattr(Retargeter, "step", failing(3))
+    assert run(*args, tmp_path / "new") == 1
+    assert capsys.readouterr().err.endswith("frame 3: a damaged frame; the 3 frames done are "
+                                            "kept: fix it, then add --resume to continue\n")
+    monkeypatch.setattr(Retargeter, "step", step)
+    assert run(*args, tmp_path / "new", "--resume") == 0
 
 
 MISSING_EXTRA = """
@@ -465,3 +700,24 @@ def test_missing_cli_extra_is_a_message_not_a_traceback(inputs, tmp_path):
     assert "'trimesh'" in blocked.stderr and 'pip install "minretarget[cli]"' in blocked.stderr
     assert "Traceback" not in blocked.stderr
     assert not (tmp_path / "b").exists() or not any((tmp_path / "b").iterdir())
+
+
+def test_shipped_bodies_are_listed_and_taken_by_name(inputs, tmp_path, capsys):
+    """Issue 41: nothing shipped a body to retarget onto."""
+    from minretarget.bodies import BODIES, body_names, shipped_body
+    from minretarget.validation import body_problems
+    assert BODIES.stat().st_size < 1_500_000
+    assert run("bodies") == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == list(body_names()) and len(lines) >= 4
+    for name in body_names():
+        points, faces = shipped_body(name)
+        assert body_problems(points, name, tpose=True) == [], name     # human, Y up, T-pose
+        assert points[:, 1].min() == pytest.approx(0, abs=1e-6) and faces.max() < len(points)
+    assert run("retarget", inputs["dir"] / "frames.npy", "child", "--out", tmp_path / "out",
+               "--format", "npz", "--weights", WEIGHTS) == 0
+    np.testing.assert_array_equal(load(tmp_path / "out" / "result.npz")["target_points"],
+                                  shipped_body("child")[0])
+    assert run("retarget", inputs["dir"] / "frames.npy", "chlid", "--out", tmp_path / "x",
+               "--weights", WEIGHTS) == 1
+    assert "chlid: no such file, nor a shipped body (child, " in capsys.readouterr().err

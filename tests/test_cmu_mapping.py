@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import CMU_DIR, needs_cmu
 from minretarget.bvh import parse_bvh, read_bvh, resample, world_transforms
 from minretarget.conventions import JOINT_INDEX
 from minretarget.kinematics import forward_kinematics
@@ -16,7 +17,6 @@ from training.data.cmu import (ANKLE_LIMIT_DEGREES, BROKEN_FLOOR_HEIGHT, BROKEN_
                                cmu_tpose_joints, floor_height, list_trials, load_motion,
                                local_quaternions, tpose_joints)
 
-CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu"
 WALK = CMU_DIR / "cgspeed" / "02" / "02_01.bvh.gz"
 
 # A small skeleton with the CMU (Daz) joint names, offsets in centimetres like the real one,
@@ -247,10 +247,10 @@ def test_the_dance_set_names_the_trials_it_cannot_find(tmp_path):
 
 # ----------------------------------------------------------------------------- real data
 
-needs_cmu = pytest.mark.skipif(not WALK.exists(), reason=f"CMU data not found at {CMU_DIR}")
+needs_walk = needs_cmu(WALK)
 
 
-@needs_cmu
+@needs_walk
 def test_the_broken_trials_are_the_sunken_ones():
     """Each listed trial sinks through the floor; its neighbours (same subject, same session)
     stand on it."""
@@ -284,7 +284,7 @@ def test_cmu_motions_cut_broken_feet_unless_kept(monkeypatch):
     assert [(m.name, len(m.rotations)) for m in kept["train"]] == [("salsa_99", 100)]
 
 
-@needs_cmu
+@needs_walk
 def test_broken_feet_are_where_measured_and_not_in_the_test_split():
     """The measured 05_06 and salsa_01 runs (docs/training_notes.md, "Broken feet in the
     training dances"); no test trial has a broken foot, so the test data is as it was."""
@@ -297,7 +297,7 @@ def test_broken_feet_are_where_measured_and_not_in_the_test_split():
         assert not broken_ankle_frames(load_motion(trial.path).rotations).any(), trial.name
 
 
-@needs_cmu
+@needs_walk
 def test_the_dance_set_keeps_each_trials_longest_run_without_broken_feet():
     from training.data.datasets import dance_sequences
     held_out = {sequence.trial.name: sequence for sequence in dance_sequences(CMU_DIR)}
@@ -308,7 +308,7 @@ def test_the_dance_set_keeps_each_trials_longest_run_without_broken_feet():
     assert (held_out["05_02"].name, held_out["05_02"].frames) == ("05_02", 279)   # whole
 
 
-@needs_cmu
+@needs_walk
 def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seeds():
     """Each validation trial keeps its place k in the draw over every trial (its bodies and
     seed: the benchmark figures stored since depend on it); place 9 was the broken 09_10's."""
@@ -320,7 +320,7 @@ def test_validation_skips_the_broken_trials_and_keeps_the_others_bodies_and_seed
                      12: "06_09"}
 
 
-@needs_cmu
+@needs_walk
 def test_the_dance_set_is_training_motion_on_validation_bodies():
     from training.data.datasets import DANCE_TRIALS, VALIDATION_SUBJECTS, dance_sequences
     held_out = dance_sequences(CMU_DIR)
@@ -332,7 +332,7 @@ def test_the_dance_set_is_training_motion_on_validation_bodies():
         assert trial.category in ("dance", "salsa", "martial") and trial.name not in BROKEN_TRIALS
 
 
-@needs_cmu
+@needs_walk
 def test_real_walk_maps_exactly_and_walks_forward():
     motion = load_motion(WALK)
     assert motion.category == "walk" and motion.source_fps == 120

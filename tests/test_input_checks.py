@@ -94,26 +94,34 @@ def test_retargeter_warns_on_target_and_first_frame_only(tiny_weights):
 
 
 def test_cli_prints_warnings_as_one_line_each_and_goes_on(tmp_path, capsys):
+    """Millimetre, Z-up files read as metres, Y-up with --force: a warning per mistake, naming
+    the option for that file; with no option the units and axes are told from the bodies.
+    A target not in T-pose is a warning, not a refusal."""
     space = make_space("mm", "z")
-    mesh_body = body()
-    write_mesh(tmp_path / "character.ply", from_canonical(mesh_body, space))
+    write_mesh(tmp_path / "character.ply", from_canonical(body(), space))
     frames = np.stack([body(arms_down=True, seed=s) for s in range(3)])
     np.save(tmp_path / "walk.npy", from_canonical(frames, space))
     args = ["retarget", tmp_path / "walk.npy", tmp_path / "character.ply", "--format", "npz",
             "--weights", WEIGHTS]
-    assert cli.main([str(a) for a in args + ["--out", tmp_path / "a"]]) == 0
+    assert cli.main([str(a) for a in args + ["--out", tmp_path / "a", "--units", "m",
+                                             "--up-axis", "y", "--force"]]) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
     assert len(err) == 4 and all(line.startswith("minretarget: warning: ") for line in err)
     assert "character.ply: the body is 1700 m tall" in err[0]
-    assert "looks like millimetres (use --units mm" in err[0]
+    assert "looks like millimetres (use --target-units mm" in err[0]
     assert "character.ply: the body lies along Z (1700 m along Z" in err[1]
-    assert "(use --up-axis z)" in err[1]
+    assert "(use --target-up z)" in err[1]
     assert "walk.npy: frame 0: the body is 1700 m tall" in err[2]
-    assert "walk.npy: frame 0: the body lies along Z" in err[3]
-    # With the right options: no warning at all.
-    assert cli.main([str(a) for a in args + ["--out", tmp_path / "b", "--units", "mm",
-                                             "--up-axis", "z"]]) == 0
+    assert "--source-units mm" in err[2]
+    assert "walk.npy: frame 0: the body lies along Z" in err[3] and "--source-up z" in err[3]
+    # With no option: no warning at all.
+    assert cli.main([str(a) for a in args + ["--out", tmp_path / "b"]]) == 0
     assert "warning" not in capsys.readouterr().err
+    write_mesh(tmp_path / "arms_down.ply", from_canonical(body(arms_down=True), space))
+    assert cli.main([str(a) for a in args[:2] + [tmp_path / "arms_down.ply"] + args[3:]
+                     + ["--out", tmp_path / "c"]]) == 0
+    [warning] = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert "arms_down.ply: the arms look far from horizontal" in warning
 
 
 # ----------------------------------------------------------------------------- errors

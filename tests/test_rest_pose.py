@@ -254,7 +254,8 @@ def test_rest_pose_needs_the_analytic_prior_and_is_recorded_only_when_on(prior_w
         ModelConfig(rest_pose=True)
 
     class Source:
-        path, kind, count, fps = "frames.npy", "points", 3, 30.0
+        path, kind, count, fps, space = __file__, "points", 3, 30.0, make_space("m", "y")
+        files = None
     records = [run_record(Source, {"points": tpose_skeleton()}, weights, ["npz"],
                           make_space("m", "y"), 2048, 0, rest_pose=on)
                for weights, on in ((prior_weights, True), (prior_weights, False),

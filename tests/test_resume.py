@@ -14,9 +14,12 @@ import pytest
 
 from conftest import GOLDEN
 from minretarget import Retargeter, cli, outputs
-from minretarget.checkpoint import CHECKPOINT, TRACK, Track, load_checkpoint, save_checkpoint
+from minretarget.checkpoint import (CHECKPOINT, TRACK, Track, difference, load_checkpoint,
+                                    run_record, save_checkpoint)
 from minretarget.contacts import FootLock
 from minretarget.formats.mesh import read_points, write_mesh
+from minretarget.sources import open_source
+from minretarget.units import CANONICAL, make_space
 
 trimesh = pytest.importorskip("trimesh")
 WEIGHTS = str(GOLDEN / "tiny_weights.npz")
@@ -114,7 +117,8 @@ def test_resume_refuses_another_foot_leash(inputs, tmp_path, monkeypatch, capsys
     assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
                               "--foot-leash", 0.05)) == 1
     err = capsys.readouterr().err
-    assert "started with other inputs or options" in err and "foot_lock" in err
+    assert "started with other inputs or options (foot_lock max_offset 0.01 then, 0.05 now)" \
+        in err                           # issue 41: the record's raw lists, named field by field
     assert cli.main(arguments(inputs, out, "--format", "npz", "--resume",
                               "--foot-leash", FootLock().max_offset)) == 0
     assert (out / "result.npz").exists()
@@ -172,10 +176,22 @@ def test_output_folder_policy(inputs, tmp_path, capsys):
     assert cli.main(arguments(inputs, tmp_path / "new", "--format", "npz", "--resume")) == 0
 
 
+def test_the_source_units_axes_and_skeleton_map_are_part_of_the_run(inputs, tiny_weights):
+    """A resume must read the source as the run began (recorded when not canonical, or given,
+    so that the runs from before match)."""
+    records = [run_record(open_source(inputs / "frames.npy", make_space(units, up)),
+                          {"points": np.zeros((3, 3))}, tiny_weights, ["npz"], CANONICAL, None, 0,
+                          skeleton_map=mapping)
+               for units, up, mapping in (("m", "y", None), ("mm", "z", {"neck": "Neck1"}))]
+    assert "source_space" not in records[0] and records[1]["source_space"] == ["mm", "z"]
+    assert "skeleton_map" not in records[0] and records[1]["skeleton_map"] == {"neck": "Neck1"}
+
+
 def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys):
     """--overwrite keeps the folder's run aside until the new run completes: a run that
-    fails midway leaves it in .previous_run (the error says where), one that fails at its
-    first frame puts it back, and a fresh run that fails there leaves no checkpoint."""
+    fails midway leaves it in .previous_run (the error says where), one refused at its
+    first frame (read before anything is touched, for its units) leaves the folder as it was,
+    and a fresh run that fails there leaves no checkpoint."""
     frames = np.load(inputs / "frames.npy")
     for bad in (0, 2):
         broken = frames[:4].copy()
@@ -200,10 +216,11 @@ def test_a_failed_replacement_keeps_the_run_it_replaced(inputs, tmp_path, capsys
     assert files(out / ".previous_run") == complete
     assert {p.name for p in out.iterdir()} == {".previous_run", CHECKPOINT, TRACK,
                                                "frame_000000.ply", "frame_000001.ply"}
-    # A second replacement drops the failed one's frames; failing at once, it puts back
-    # the run that both were replacing.
+    # A second replacement refused at once leaves both runs as they were; one that succeeds
+    # drops the failed one's frames.
+    failed = files(out / ".previous_run"), {p.name for p in out.iterdir()}
     assert run(out, "nan_at_0.npy", "--overwrite") == 1
-    assert files(out) == complete
+    assert (files(out / ".previous_run"), {p.name for p in out.iterdir()}) == failed
     assert run(out, "nan_at_2.npy", "--overwrite") == 1
     assert run(out, None, "--overwrite") == 0
     assert files(out) == complete                                    # the same run again
@@ -338,6 +355,40 @@ def test_resume_refuses_an_option_switched_off(tiny_weights, tmp_path):
     run = {"version": 5, "frames": 10, "denoise": True}
     save_checkpoint(tmp_path, run, None, 0, track)
     track.close()
-    with pytest.raises(ValueError, match="denoise True then, None now"):
+    with pytest.raises(ValueError, match="denoise on then, off now"):
         load_checkpoint(tmp_path, {"version": 5, "frames": 10}, tiny_weights)
     assert load_checkpoint(tmp_path, run, tiny_weights) == (0, None)
+
+
+def test_a_resume_refuses_a_source_file_changed_since(inputs, tmp_path, monkeypatch, capsys):
+    """Issue 41: --resume took a changed source frame silently."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for t, cloud in enumerate(np.load(inputs / "frames.npy")[:6]):
+        np.save(folder / f"f{t}.npy", cloud)
+    out, original = tmp_path / "out", Retargeter.step
+
+    def stop_at_frame_3(self, points):
+        if self.state is not None and self.state.frames_seen == 3:
+            raise KeyboardInterrupt
+        return original(self, points)
+    args = arguments(inputs, out, "--format", "npz")
+    args[1] = str(folder)
+    monkeypatch.setattr(Retargeter, "step", stop_at_frame_3)
+    assert cli.main(args) == 130
+    monkeypatch.undo()
+    np.save(folder / "f1.npy", np.load(folder / "f1.npy") + 0.01)
+    os.utime(folder / "f1.npy", ns=(1, 1))                          # whatever the clock says
+    capsys.readouterr()
+    assert cli.main(args + ["--resume"]) == 1
+    assert "(the source's files changed (their sizes or times))" in capsys.readouterr().err
+    assert cli.main(args + ["--overwrite"]) == 0
+
+
+@pytest.mark.parametrize("key, then, now, said", [
+    ("target_sha256", "ab" * 32, "cd" * 32, "the target differs (its SHA-256)"),
+    ("smoothing", [0.5, 1.0], None, "smoothing 0.5 1.0 then, off now"),
+    ("source_space", None, ["cm", "y"], "source_space off then, cm y now"),
+    ("points", 2048, 1024, "points 2048 then, 1024 now")])
+def test_a_resume_names_what_differs_in_words(key, then, now, said):
+    assert difference(key, then, now) == said

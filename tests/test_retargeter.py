@@ -1,5 +1,10 @@
 """The Retargeter's public behaviour: streaming, state, and input errors."""
 import itertools
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -241,3 +246,54 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
     assert np.abs(with_it.vertices - without_it.vertices).max() > 1e-4
     with pytest.raises(ValueError, match="state.denoise_hidden"):
         on.state = off.state
+
+
+WARM_UP_SCRIPT = """
+import json, sys
+import numba
+import numpy as np
+from conftest import turned_about_up
+from minretarget import Retargeter
+from minretarget.sources import load_sample
+
+settings, skeleton = json.loads(sys.argv[1]), sys.argv[2] == "skeleton"
+retargeter = Retargeter.from_weights(warn=False, **settings)
+source, target, faces, _ = load_sample()
+retargeter.set_target(target, faces)
+retargeter.warm_up(skeleton)
+
+
+def loaded():
+    return {(name, str(signature)) for module in list(sys.modules.values())
+            if module and module.__name__.startswith("minretarget")
+            for name, value in vars(module).items()
+            if isinstance(value, numba.core.registry.CPUDispatcher)
+            for signature in value.signatures}
+
+
+before = loaded()
+clouds = [cloud for cloud, _ in zip(source.frames, range(4))]
+clouds.append(turned_about_up(clouds[-1], np.pi).astype(np.float32))  # the facing check rereads
+for cloud in clouds:
+    if skeleton:
+        retargeter.step_skeleton(retargeter.target.tpose_joints)
+    else:
+        retargeter.step(cloud)
+print(json.dumps(sorted(loaded() - before)))
+"""
+
+
+@pytest.mark.parametrize("settings, skeleton", [
+    ({}, False), ({"mirror_source": True}, False), ({"smoothing": None, "foot_lock": None,
+                                                     "refine": False, "denoise": False}, False),
+    ({}, True)])
+def test_warm_up_loads_every_kernel_a_stream_uses(settings, skeleton):
+    """In a fresh process, a stream after ``warm_up`` loads no kernel signature that the
+    warm-up did not (so that nothing compiles once frames, and a progress bar, are going)."""
+    tests = Path(__file__).parent
+    result = subprocess.run(
+        [sys.executable, "-c", WARM_UP_SCRIPT, json.dumps(settings),
+         "skeleton" if skeleton else "points"], capture_output=True, text=True, timeout=600,
+        env={**os.environ, "PYTHONPATH": f"{tests.parent}{os.pathsep}{tests}"})
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout) == []

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from training.data.sampling import (points_from_barycentric, sample_point_clouds,
-                                    sample_surface, triangle_areas)
+from minretarget.sampling import (points_from_barycentric, sample_point_clouds, sample_surface,
+                                  triangle_areas)
 
 # Five separate triangles in the z = 0 plane, areas 0.5 * s^2 for s = 0.2 .. 1.4.
 _SIZES = np.array([0.2, 0.5, 0.8, 1.1, 1.4])

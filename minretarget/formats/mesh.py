@@ -51,6 +51,13 @@ def read_points(path):
                 points = np.loadtxt(path, usecols=(0, 1, 2), ndmin=2, comments="#")
         except (ValueError, OSError, IndexError) as error:
             raise ValueError(f"{path}: cannot read points: {error}") from None
+    return checked_points(path, points, faces)
+
+
+def checked_points(path, points, faces=None):
+    """``read_points``'s checks on arrays read from ``path``: (N, 3) numbers, finite in
+    float32, faces (F, 3) indexing them (or None) -> (float32 points, int64 faces or None);
+    ValueError naming the file."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind not in "fiu":
         raise ValueError(f"{path}: expected (N, 3) numeric points, got {points.dtype} "
@@ -61,6 +68,12 @@ def read_points(path):
         row = int(np.argwhere(~np.isfinite(points))[0, 0])
         raise ValueError(f"{path}: point {row} is not finite (or too large for float32): "
                          f"{points[row].tolist()}")
+    if faces is not None:
+        faces = np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+            raise ValueError(f"{path}: faces must be (F, 3) integers, got {faces.dtype} "
+                             f"{faces.shape}")
+        faces = faces.astype(np.int64) if len(faces) else None
     if faces is not None:
         outside = faces[(faces < 0) | (faces >= len(points))]
         if outside.size:

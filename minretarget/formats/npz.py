@@ -104,8 +104,9 @@ def load_npy(path, mmap_mode=None):
     return array
 
 
-def load_npz(file, name=None):
-    """Every array of an ``.npz`` (a path or a binary file), without pickle: {key: array}.
+def load_npz(file, name=None, keys=None):
+    """Every array of an ``.npz`` (a path or a binary file), or those named in ``keys``,
+    without pickle: {key: array}.
 
     Each member's header is checked against the member's size before NumPy allocates what
     it claims. Any damage is a ValueError naming the file (``name``, default ``file``).
@@ -124,7 +125,7 @@ def load_npz(file, name=None):
         if hasattr(file, "seek"):
             file.seek(0)
         with np.load(file, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
+            return {key: data[key] for key in (data.files if keys is None else keys)}
     except ARCHIVE_ERRORS as error:
         raise ValueError(f"{name}: not a readable .npz ({error})") from None
 

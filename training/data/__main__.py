@@ -13,6 +13,9 @@
     python -m training.data preview --out preview.png [--cmu DIR] [--trial 07_01]
     python -m training.data sample --out minretarget/data/sample.npz [--cmu DIR] [--trial 08_01]
                                    [--points P] [--seed S]
+    python -m training.data bodies --out minretarget/data/bodies.npz
+    python -m training.data body --out BODY.obj|.ply [--gender G] [--age A] [--weight W]
+                                 [--height H] [--muscle M] [--proportions P]
 """
 import argparse
 import math
@@ -146,6 +149,30 @@ def _sample(args):
           f"{_size(Path(args.out).stat().st_size)}")
 
 
+def _bodies(args):
+    from .sample import build_bodies, write_sample
+    arrays = build_bodies(cache_dir=args.body_cache)
+    write_sample(args.out, arrays)
+    print(f"wrote {args.out}: {', '.join(arrays['names'])}; {_size(Path(args.out).stat().st_size)}")
+
+
+def _body(args):
+    from minretarget.formats.mesh import write_mesh
+
+    from .bodies import get_body
+    phenotype = {label: getattr(args, label) for label in PHENOTYPE if getattr(args, label)
+                 is not None}
+    body = get_body(phenotype, Path(args.out).stem, args.body_cache)
+    write_mesh(args.out, body.vertices, body.faces)
+    print(f"wrote {args.out}: a T-pose body {body.height:.2f} m tall (metres, +Y up, facing +Z)")
+
+
+# anny's phenotype values, each in [0, 1] (0.5 when not given): what ``body`` takes.
+PHENOTYPE = {"gender": "0 male .. 1 female", "age": "0 baby, 0.25 child, 0.8 about 30 years, "
+             "1 old", "weight": "0 thin .. 1 heavy", "height": "0 short .. 1 tall",
+             "muscle": "0 .. 1", "proportions": "0 .. 1 (body proportions)"}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m training.data", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -218,14 +245,24 @@ def main(argv=None):
     sample_parser.add_argument("--points", type=int_at_least(64), default=2048,
                                help="points per cloud")
     sample_parser.add_argument("--seed", type=int_at_least(0), default=0, help="random seed")
-    for sub in (build_parser, pack_parser, preview_parser, sample_parser):
+    bodies_parser = commands.add_parser("bodies", help="write the shipped target bodies "
+                                        "(minretarget/data/bodies.npz)")
+    bodies_parser.add_argument("--out", required=True, help="output .npz")
+    body_parser = commands.add_parser("body", help="write one T-pose body made with anny, as "
+                                      "a TARGET for minretarget retarget")
+    body_parser.add_argument("--out", required=True, help="output .obj or .ply")
+    for label, meaning in PHENOTYPE.items():
+        body_parser.add_argument(f"--{label}", type=_fraction, default=None,
+                                 help=f"anny's {label}: {meaning} (default 0.5)")
+    for sub in (build_parser, pack_parser, preview_parser, sample_parser, bodies_parser,
+                body_parser):
         sub.add_argument("--body-cache", default=None,
                          help="body cache folder (default $MINRETARGET_CACHE/bodies or "
                               "~/.cache/minretarget/bodies)")
     args = parser.parse_args(argv)
     try:
-        {"build": _build, "pack": _pack, "preview": _preview,
-         "sample": _sample}[args.command](args)
+        {"build": _build, "pack": _pack, "preview": _preview, "sample": _sample,
+         "bodies": _bodies, "body": _body}[args.command](args)
     except (ValueError, OSError) as error:    # bad input: one line, not a traceback
         sys.exit(f"{parser.prog} {args.command}: error: {error}")
 

@@ -27,9 +27,8 @@ import numpy as np
 
 from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, skinning_transforms
+from minretarget.sampling import sample_point_clouds
 from minretarget.validation import as_float32_array
-
-from .sampling import sample_point_clouds
 
 ANNY_RIG = "game_engine"
 ANNY_TOPOLOGY = "anny"

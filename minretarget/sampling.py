@@ -13,7 +13,7 @@ Every function takes a seeded ``numpy.random.Generator``; lengths are metres.
 """
 import numpy as np
 
-from minretarget.validation import as_float32_array
+from .validation import as_float32_array
 
 
 def triangle_areas(vertices, faces):
