@@ -38,6 +38,11 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     oracle both          both of the above (not smoothed or denoised; foot lock on)
     paper                the paper's Table 4, reported on its own SMPL test set (not this one)
 Only when named in --rows:
+    model, source fit    the model with the source fit (``Retargeter(fit_source=FitSettings())``,
+                         minretarget.fit: a body model tracked in every cloud after SKR, the
+                         refiner and the facing check), no smoothing and no denoiser (both
+                         learned or tuned on SKR's errors, not the fit's)
+    analytic, source fit  the analytic baseline on that row's source skeletons
     model, foot leash X m  the model with the foot lock's leash (``FootLock.max_offset``, the
                          command line's --foot-leash) X instead of 1 cm: planted toes held
                          firmer, for X in ``FOOT_LEASHES``
@@ -74,6 +79,7 @@ import numpy as np
 from minretarget.analytic import analytic_rotations
 from minretarget.atomic import atomic_write
 from minretarget.contacts import FootLock
+from minretarget.fit import FitSettings
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
 from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts, foot_speeds
 from minretarget.retargeter import Retargeter
@@ -88,11 +94,13 @@ ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock
         "oracle target", "oracle both")
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
 LEASH_ROWS = tuple(f"model, foot leash {leash:g} m" for leash in FOOT_LEASHES)
+FIT_ROWS = ("model, source fit", "analytic, source fit")
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
 # Paired comparisons, sequence by sequence, printed when a run has both rows.
-PAIRS = (("model", "analytic"), ("model, mirrored source", "analytic, mirrored source"))
+PAIRS = (("model", "analytic"), ("model, mirrored source", "analytic, mirrored source"),
+         ("model, source fit", "analytic, source fit"), ("model, source fit", "model"))
 
 
 def command_line(main):
@@ -181,12 +189,14 @@ def run_sequence(weights, sequence, wanted=ROWS):
     no_facing_check = Retargeter(weights, facing_check=False)
     raw = Retargeter(weights, smoothing=None, denoise=False)
     mirrored = Retargeter(weights, mirror_source=True)
+    fitted = Retargeter(weights, fit_source=FitSettings(), smoothing=None, denoise=False)
     oracle_rig = Retargeter(weights)
     oracle_rig_raw = Retargeter(weights, smoothing=None, denoise=False)
     leashed = {row: Retargeter(weights, foot_lock=FootLock(max_offset=leash))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
                                  (no_facing_check, rig), (raw, rig), (mirrored, rig),
+                                 (fitted, rig),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
@@ -210,6 +220,9 @@ def run_sequence(weights, sequence, wanted=ROWS):
 
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
+    fitted.reset()
+    fitted_frames = functools.cache(lambda: [fitted.step_skeleton(joints, cloud)
+                                             for joints, cloud in zip(raw_joints, clouds)])
     make = {"model": lambda: model,
             "model, no refiner": lambda: stream(unrefined, skr_alone(), clouds),
             "model, no denoiser": lambda: stream(no_denoiser, raw_joints, clouds),
@@ -220,6 +233,8 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "model, paper pipeline": lambda: stream(paper, skr_alone()),
             "analytic": lambda: analytic(frames),
             "analytic, mirrored source": lambda: analytic(mirrored_frames()),
+            "model, source fit": lambda: stacked(fitted_frames()),
+            "analytic, source fit": lambda: analytic(fitted_frames()),
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
             "oracle target": lambda: stream(oracle_rig, raw_joints, clouds),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),
@@ -368,7 +383,7 @@ def main(argv=None):
                         help="score 16 dance and martial-arts trials of the training split on "
                              "held-out validation bodies instead (training.data.datasets."
                              "dance_sequences: 6,954 frames): motion validation lacks")
-    parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS, default=list(ROWS),
+    parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS, default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "
                         "but the foot-leash rows; model always)")
     parser.add_argument("--json", help="write the results as JSON here")

@@ -23,6 +23,7 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
 
 Lengths are metres; the solver works in float64.
 """
+import functools
 from pathlib import Path
 from typing import NamedTuple
 
@@ -82,6 +83,12 @@ def load_body_model(path=None):
                                             else np.float64) for key in BodyModel._fields))
 
 
+@functools.lru_cache(maxsize=1)
+def body_model():
+    """The shipped body model, read once per process."""
+    return load_body_model()
+
+
 class FitSettings(NamedTuple):
     """How the fit runs; the defaults are the shipped choice (docs/source_fit.md)."""
     iterations: int = 4            # Gauss-Newton steps per start per frame
@@ -93,6 +100,7 @@ class FitSettings(NamedTuple):
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
                                    # (mean over joints) is tried again from the reading
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
+    settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
 
 
 class FitState(NamedTuple):
@@ -359,6 +367,17 @@ def fit_shape(model, shape, frames, settings, width):
     return shape - np.linalg.solve(hessian, gradient)
 
 
+def settle_shape(model, shape, frames, settings):
+    """The calibration's last word: ``settings.settle_rounds`` rounds of every kept frame's
+    pose fitted again on the current shape (no pulls), then a shape step on them all."""
+    for _ in range(settings.settle_rounds):
+        rest, tpose_joints = shaped(model, shape)
+        frames = [(cloud, *fit_pose(model, rest, tpose_joints, cloud, cKDTree(cloud), local,
+                                    root, settings)[:2]) for cloud, local, root in frames]
+        shape = fit_shape(model, shape, frames, settings, settings.robust_width)
+    return shape
+
+
 def local_from_joints(joints, tpose_joints):
     """Local rotations (J, 3, 3) that pose the model's T-pose like ``joints`` (J, 3)
     (``analytic.analytic_rotations``)."""
@@ -417,6 +436,11 @@ def fit_frame(model, settings, state, cloud, reading):
     if t < settings.calibration_frames:
         calibration = calibration + ((cloud, local, root),)
         shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
+        if t == settings.calibration_frames - 1:
+            shape = settle_shape(model, shape, calibration, settings)
+            rest, tpose_joints = shaped(model, shape)
+            local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, tree, local,
+                                              root, settings, pulls)
     elif calibration:
         calibration = ()                 # calibrated: the clouds are no longer needed
     return (FitState(t + 1, shape, local, root, np.stack([last, joints]), calibration),

@@ -11,6 +11,7 @@ import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
+from .fit import FitSettings, body_model, fit_frame, start_fit
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
@@ -42,7 +43,7 @@ class RetargetedFrame(NamedTuple):
 class Retargeter:
     def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
                  foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
-                 denoise=True, rest_pose=True, facing_check=True):
+                 denoise=True, rest_pose=True, facing_check=True, fit_source=None):
         """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
@@ -71,7 +72,12 @@ class Retargeter:
         ``facing_check``: in a stream, read a source cloud again half turned when SKR's
         skeleton of it faces far from the heading kept so far, and keep the reading that
         faces nearer (``facing``: SKR now and then reads a body backwards); False for every
-        reading as it comes (the paper's pipeline)."""
+        reading as it comes (the paper's pipeline).
+        ``fit_source``: a ``fit.FitSettings`` to track the shipped body model in every source
+        cloud after SKR (and the refiner and facing check) and hand its joints on (``fit``:
+        fixed bone lengths, left and right kept), or None (the default) for SKR's reading.
+        Only frames with a cloud are fitted (``step``, or ``step_skeleton`` given points).
+        Its state is ``fit_state``, apart from ``state``."""
         self.weights = weights
         self.warn = warn
         self.workers = as_workers(workers)
@@ -83,16 +89,22 @@ class Retargeter:
         self.denoise = bool(denoise)
         self.rest_pose = bool(rest_pose)
         self.facing_check = bool(facing_check)
+        if fit_source is not None and not isinstance(fit_source, FitSettings):
+            raise TypeError(f"fit_source must be a fit.FitSettings or None, got "
+                            f"{type(fit_source).__name__}")
+        self.fit_source = fit_source
         self.target = None
         self._state = None
+        self.fit_state = None
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
                      foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True, denoise=True, rest_pose=True, facing_check=True):
+                     refine=True, denoise=True, rest_pose=True, facing_check=True,
+                     fit_source=None):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine, denoise, rest_pose, facing_check)
+                   mirror_source, refine, denoise, rest_pose, facing_check, fit_source)
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -132,6 +144,7 @@ class Retargeter:
     def reset(self):
         """Forget the motion seen so far (the target stays)."""
         self._state = None
+        self.fit_state = None
 
     def warm_up(self, skeleton=False):
         """Compile every kernel that a stream of clouds (``skeleton``: of joints) uses with
@@ -244,6 +257,8 @@ class Retargeter:
                 lambda clouds: self._skr(clouds, self.mirror_source), TRIGGER, CONFIRM)
         else:      # tracked all the same, so that the check can be switched on mid-stream
             reference, away = float(heading_angles(source_joints)), 0
+        if self.fit_source is not None and points is not None:
+            source_joints = self._fit(points, source_joints)
         rotations, root, state = retarget_step(self.weights.smrm, self._state, source_joints,
                                                self.target.tpose_joints, self.smoothing,
                                                self.denoiser, self.rest_pose_model)
@@ -251,6 +266,15 @@ class Retargeter:
         rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
                                             self._state, self.foot_lock)
         return rotations, root
+
+    def _fit(self, points, reading):
+        """The source fit on one cloud and its reading -> the fitted joints (J, 3) float32."""
+        if self.fit_state is None:
+            self.fit_state, joints = start_fit(body_model(), self.fit_source, points, reading)
+        else:
+            self.fit_state, joints, _ = fit_frame(body_model(), self.fit_source,
+                                                  self.fit_state, points, reading)
+        return joints.astype(np.float32)
 
     def pose(self, rotations, root):
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
