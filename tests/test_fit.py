@@ -160,3 +160,33 @@ def test_load_body_model_names_what_is_wrong(tmp_path, model):
     np.savez(tmp_path / "weights.npz", **{**arrays, "bone_weight": arrays["bone_weight"] * 2})
     with pytest.raises(ValueError, match="summing to 1"):
         fit.load_body_model(tmp_path / "weights.npz")
+
+
+@pytest.fixture(scope="module")
+def sample_clouds():
+    with np.load(fit.BODY_MODEL.with_name("sample.npz")) as data:
+        return data["source_points"][:5], data["target_points"]
+
+
+def test_retargeter_hands_smrm_the_fit_of_its_readings(sample_clouds):
+    from minretarget.retargeter import Retargeter
+    from minretarget.weights import load_weights
+    clouds, target = sample_clouds
+    settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
+    retargeter = Retargeter(load_weights(), smoothing=None, denoise=False, facing_check=False,
+                            foot_lock=None, fit_source=settings)
+    retargeter.set_target(target)
+    seen = np.stack([frame.source_joints for frame in retargeter.run(clouds)])
+    fitted, _ = fit.track(fit.body_model(), settings, clouds, retargeter.skeleton(clouds))
+    np.testing.assert_allclose(seen, fitted, atol=1e-6)
+    # bone lengths are the calibrated body's: constant once the calibration is over
+    bones = np.linalg.norm(fitted[:, 1:] - fitted[:, list(fit.PARENTS[1:])], axis=2)
+    np.testing.assert_allclose(bones[2:], np.broadcast_to(bones[2], bones[2:].shape), atol=1e-5)
+    retargeter.reset()
+    assert retargeter.fit_state is None
+
+
+def test_retargeter_refuses_fit_settings_of_another_kind():
+    from minretarget.retargeter import Retargeter
+    with pytest.raises(TypeError, match="fit_source must be a fit.FitSettings"):
+        Retargeter(None, fit_source="yes")
