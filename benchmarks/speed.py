@@ -1,6 +1,7 @@
 """Speed of the minretarget runtime, against the torch reference and onnxruntime.
 
     python benchmarks/speed.py [--quick] [--weights FILE] [--threads N] [--json OUT.json]
+    python benchmarks/speed.py --neighbour [--weights FILE] [--json OUT.json]
 
 One process, the same weights and inputs for every engine, batch 1 streaming (one frame at a
 time, as online use), with N threads everywhere (BLAS under numba, torch, onnxruntime):
@@ -16,6 +17,11 @@ time, as online use), with N threads everywhere (BLAS under numba, torch, onnxru
     each in a fresh process, apart from the steady state;
   * resident memory along a 10,000-frame stream (--quick: 2,000), which must stay flat;
   * offline throughput: whole sequences through ``Retargeter.retarget_sequence``.
+--neighbour measures only this, without torch: the shipped sample's 68 clouds (P = 2,048,
+V = 13,718) streamed through ``Retargeter.step`` with 1 and 2 BLAS threads, alone and beside
+a busy neighbour (another process spinning on one core, as on a shared machine), with and
+without the source fit (``fit_source=FitSettings()``, smoothing and denoiser off): median ms
+per frame after the fit's calibration frames, and those frames' total.
 Ratios > 1 mean minretarget is faster. Without --weights it uses the shipped weights.
 Needs the ``bench`` extra (torch, onnxruntime, onnxscript, threadpoolctl).
 """
@@ -36,12 +42,14 @@ from threadpoolctl import threadpool_limits
 
 from minretarget.cli import int_at_least
 from minretarget.denoise import denoise_joints, hidden_shape
+from minretarget.fit import FitSettings
 from minretarget.kinematics import forward_kinematics, skinning_transforms
 from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.skr import regress_joints
 from minretarget.smrm import retarget_step
+from minretarget.sources import load_sample
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import command_line, load_measured, write_text  # noqa: E402
@@ -327,6 +335,54 @@ def offline_fps(retargeter, frames, length=256):
     return length / (time.perf_counter() - start)
 
 
+# ----------------------------------------------------------------------------- neighbour
+
+def sample_stream_times(weights, fit_source, blas_threads):
+    """(median ms per frame after the calibration frames, seconds of those frames) of the
+    shipped sample streamed through ``Retargeter.step``, after one warm-up pass."""
+    source, target_points, faces, _ = load_sample()
+    clouds = list(source.frames)
+    kept = FitSettings().calibration_frames
+    options = dict(fit_source=FitSettings(), smoothing=None, denoise=False) if fit_source else {}
+    retargeter = Retargeter(weights, warn=False, **options)
+    retargeter.set_target(target_points, faces)
+    with threadpool_limits(blas_threads, user_api="blas"):
+        for points in clouds[:kept + 2]:                                  # warm-up
+            retargeter.step(points)
+        retargeter.reset()
+        seconds = []
+        for points in clouds:
+            start = time.perf_counter()
+            retargeter.step(points)
+            seconds.append(time.perf_counter() - start)
+    return 1e3 * float(np.median(seconds[kept:])), float(np.sum(seconds[:kept]))
+
+
+def neighbour_times(weights):
+    """ms per frame for each (fit, BLAS threads, busy neighbour) on the shipped sample."""
+    rows = []
+    for fit_source in (False, True):
+        for blas_threads in (1, 2):
+            for busy in (False, True):
+                neighbour = (subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                             if busy else None)
+                try:
+                    ms, calibration_s = sample_stream_times(weights, fit_source, blas_threads)
+                finally:
+                    if neighbour is not None:
+                        neighbour.kill()
+                        neighbour.wait()
+                rows.append({"source_fit": fit_source, "blas_threads": blas_threads,
+                             "busy_neighbour": busy, "ms_per_frame": ms,
+                             "fps": 1e3 / ms, "first_frames_s": calibration_s,
+                             "load_average": os.getloadavg()})
+                print(f"source fit {fit_source!s:>5}, BLAS threads {blas_threads}, busy "
+                      f"neighbour {busy!s:>5}: {ms:7.2f} ms/frame ({1e3 / ms:6.1f} frames/s); "
+                      f"first {FitSettings().calibration_frames} frames {calibration_s:.2f} s",
+                      flush=True)
+    return rows
+
+
 # ----------------------------------------------------------------------------- main
 
 def main():
@@ -340,7 +396,17 @@ def main():
                              "each with one BLAS thread; default 1, the runtime's default, "
                              "where BLAS gets --threads")
     parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--neighbour", action="store_true",
+                        help="only the busy-neighbour and source-fit streams (no torch)")
     args = parser.parse_args()
+    if args.neighbour:
+        weights, record = load_measured(args.weights)
+        results = {**record, "neighbour": neighbour_times(weights),
+                   "machine": {"processor": platform.processor() or platform.machine(),
+                               "cores": os.cpu_count()}}
+        if args.json:
+            write_text(args.json, json.dumps(results, indent=2))
+        return
     workers = args.workers
     blas_threads = 1 if workers > 1 else args.threads
     import torch

@@ -267,31 +267,56 @@ def _clamped(step):
 # ----------------------------------------------------------------------------- one frame
 
 def surface_terms(posed, cloud, cloud_tree, settings):
-    """Both directions' nearest pairs -> (model index (N,), targets (N, 3), weights (N,))."""
-    _, nearest_model = cKDTree(posed.points).query(cloud)
-    distance_in = np.linalg.norm(posed.points[nearest_model] - cloud, axis=1)
+    """Both directions' nearest pairs -> model index (N,), targets (N, 3), robust weights
+    (N,), and the fit's cost: the mean truncated distance cloud -> model plus
+    ``model_to_cloud`` times model -> cloud (metres)."""
+    distance_in, nearest_model = cKDTree(posed.points, balanced_tree=False,
+                                         compact_nodes=False).query(cloud)
     distance_out, nearest_cloud = cloud_tree.query(posed.points)
     weights = np.concatenate([
         robust_weights(distance_in, settings.robust_width) / len(cloud),
         settings.model_to_cloud * robust_weights(distance_out, settings.robust_width)
         / len(posed.points)])
+    cost = float(np.mean(np.minimum(distance_in, TRUNCATE)) + settings.model_to_cloud
+                 * np.mean(np.minimum(distance_out, TRUNCATE)))
     return (np.concatenate([nearest_model, np.arange(len(posed.points))]),
-            np.concatenate([cloud, cloud[nearest_cloud]]), weights)
+            np.concatenate([cloud, cloud[nearest_cloud]]), weights, cost)
+
+
+# ABOVE[k, j]: j is a strict ancestor of k (turning j moves k about j).
+ABOVE = np.zeros((NUM_JOINTS, NUM_JOINTS))
+for _joint in range(NUM_JOINTS):
+    _parent = PARENTS[_joint]
+    while _parent >= 0:
+        ABOVE[_joint, _parent] = 1.0
+        _parent = PARENTS[_parent]
 
 
 def joint_rows(joints, goal, weight):
-    """Rows of the pull of the joints (J, 3) towards ``goal`` (J, 3): (J * 3, PARAMETERS), (J * 3,)."""
+    """Rows of the pull of the joints (J, 3) towards ``goal`` (J, 3) with ``weight``:
+    (J * 3, PARAMETERS), (J * 3,). Turning ancestor j by d moves k by d x (p_k - p_j)."""
     scale = np.sqrt(weight / NUM_JOINTS)
-    rows = np.zeros((NUM_JOINTS, 3, PARAMETERS))
+    lever = ABOVE[:, :, None] * (joints[:, None] - joints[None])             # (J, J, 3)
+    rows = np.empty((NUM_JOINTS, 3, PARAMETERS))
     rows[:, :, :3] = np.eye(3)
-    for k in range(NUM_JOINTS):
-        j = PARENTS[k]
-        while j >= 0:                    # turning ancestor j by d moves k by d x (p_k - p_j)
-            a = joints[k] - joints[j]
-            rows[k, :, 3 + 3 * j:6 + 3 * j] = [[0, a[2], -a[1]], [-a[2], 0, a[0]],
-                                               [a[1], -a[0], 0]]
-            j = PARENTS[j]
+    rows[:, :, 3:] = -_skew(lever).transpose(0, 2, 1, 3).reshape(NUM_JOINTS, 3, -1)
     return scale * rows.reshape(-1, PARAMETERS), scale * (joints - goal).ravel()
+
+
+def _skew(v):
+    """(..., 3) -> (..., 3, 3) cross-product matrices: _skew(a) @ b = a x b."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1),
+                     np.stack([-y, x, zero], -1)], -2)
+
+
+def combined_pull(pulls):
+    """Several pulls of the joints, ((weight, goal (J, 3)), ...), as one: the weights' sum
+    towards their weighted mean goal (the same quadratic, up to a constant)."""
+    pulls = [(weight, goal) for weight, goal in pulls if weight]
+    total = sum(weight for weight, _ in pulls)
+    return total, (sum(weight * goal for weight, goal in pulls) / total if total else None)
 
 
 def fit_pose(model, rest, tpose_joints, cloud, cloud_tree, local, root, settings, pulls=()):
@@ -303,35 +328,27 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_tree, local, root, settings
         local, root: the start, (J, 3, 3) and (3,).
         pulls: ((weight, goal joints (J, 3)), ...).
     Returns:
-        local, root, joints (J, 3), cost (the mean truncated distance both ways, metres).
+        local, root, joints (J, 3), cost: the mean truncated distance both ways (metres),
+        measured before the last step (which it only refines).
     """
+    pull_weight, pull_goal = combined_pull(pulls)
     for _ in range(settings.iterations):
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights = surface_terms(posed, cloud, cloud_tree, settings)
-        rows, values = np.empty((len(index), PARAMETERS)), np.empty(len(index))
+        index, targets, weights, cost = surface_terms(posed, cloud, cloud_tree, settings)
+        rows, values = np.empty((len(index), PARAMETERS), np.float32), np.empty(len(index))
         _plane_rows_kernel(index, targets, weights, posed.points, posed.normals, posed.lever,
                            posed.reach, rows, values)
-        hessian, gradient = rows.T @ rows, rows.T @ values
-        for weight, goal in pulls:
-            if weight:
-                extra_rows, extra_values = joint_rows(joints, goal, weight)
-                hessian += extra_rows.T @ extra_rows
-                gradient += extra_rows.T @ extra_values
+        hessian = (rows.T @ rows).astype(np.float64)      # float32: the product is the cost
+        gradient = rows.T.astype(np.float64) @ values
+        if pull_weight:
+            extra_rows, extra_values = joint_rows(joints, pull_goal, pull_weight)
+            hessian += extra_rows.T @ extra_rows
+            gradient += extra_rows.T @ extra_values
         hessian[np.diag_indices_from(hessian)] += 1e-3 * np.diag(hessian) + 1e-5
         local, root = apply_step(local, root, rotations,
                                  _clamped(-np.linalg.solve(hessian, gradient)))
-    rotations, joints = forward(local, root, tpose_joints)
-    posed = pose_model(model, rest, tpose_joints, rotations, joints)
-    return local, root, joints, fit_cost(posed.points, cloud, cloud_tree, settings)
-
-
-def fit_cost(points, cloud, cloud_tree, settings):
-    """Mean truncated nearest distance, cloud -> model plus model -> cloud (weighted)."""
-    distance_in, _ = cKDTree(points).query(cloud)
-    distance_out, _ = cloud_tree.query(points)
-    return float(np.mean(np.minimum(distance_in, TRUNCATE)) + settings.model_to_cloud
-                 * np.mean(np.minimum(distance_out, TRUNCATE)))
+    return local, root, forward(local, root, tpose_joints)[1], cost
 
 
 def shape_jacobian(model, rotations):
@@ -357,7 +374,7 @@ def fit_shape(model, shape, frames, settings, width):
     for cloud, local, root in frames:
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights = surface_terms(posed, cloud, cKDTree(cloud), settings)
+        index, targets, weights, _ = surface_terms(posed, cloud, cKDTree(cloud), settings)
         jacobian = shape_jacobian(model, rotations)[index]             # (N, 3, K)
         normals = posed.normals[index]
         along = np.einsum("na,nak->nk", normals, jacobian) * np.sqrt(weights)[:, None]
