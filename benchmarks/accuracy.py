@@ -81,7 +81,8 @@ from minretarget.atomic import atomic_write
 from minretarget.contacts import FootLock
 from minretarget.fit import FitSettings
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
-from minretarget.metrics import METRIC_NAMES, evaluate, foot_contacts, foot_speeds
+from minretarget.metrics import (METRIC_NAMES, crossed_feet, evaluate, foot_contacts,
+                                 foot_speeds, joint_errors, skating_steps)
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
@@ -223,6 +224,11 @@ def run_sequence(weights, sequence, wanted=ROWS):
     fitted.reset()
     fitted_frames = functools.cache(lambda: [fitted.step_skeleton(joints, cloud)
                                              for joints, cloud in zip(raw_joints, clouds)])
+    # The source skeleton SMRM saw, for the rows that keep it.
+    seen = {"model": lambda: frames, "analytic": lambda: frames,
+            "model, mirrored source": mirrored_frames,
+            "analytic, mirrored source": mirrored_frames,
+            "model, source fit": fitted_frames, "analytic, source fit": fitted_frames}
     make = {"model": lambda: model,
             "model, no refiner": lambda: stream(unrefined, skr_alone(), clouds),
             "model, no denoiser": lambda: stream(no_denoiser, raw_joints, clouds),
@@ -240,7 +246,29 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),
             **{row: functools.partial(stream, retargeter, raw_joints, clouds)
                for row, retargeter in leashed.items()}}
-    return {row: make[row]() for row in wanted}, seconds
+    rows = {row: make[row]() for row in wanted}
+    sources = {row: np.stack([f.source_joints for f in seen[row]()])
+               for row in wanted if row in seen}
+    sources.update({row: sequence["source_joints"] for row in wanted if "oracle" in row
+                    and row != "oracle target"})
+    return rows, seconds, sources
+
+
+def skeleton_figures(rows, sources, sequence):
+    """Per row: the source skeleton's error (``metrics.joint_errors``, where the row keeps
+    it), the frames with crossed feet against the truth's, and the skating steps
+    ([count, steps], ``metrics.skating_steps``); the ground truth's skating too."""
+    truth = sequence["target_joints"]
+    out = {}
+    for name, (joints, _) in rows.items():
+        skating = skating_steps(joints)
+        out[name] = {"crossed_legs": int(crossed_feet(joints, truth).sum()),
+                     "skating": [int(skating.sum()), int(skating.size)]}
+        if name in sources:
+            out[name]["source_error"] = joint_errors(sources[name], sequence["source_joints"])
+    skating = skating_steps(truth)
+    out["ground truth"] = {"skating": [int(skating.sum()), int(skating.size)]}
+    return out
 
 
 def feet_on_contacts(rows, sequence):
@@ -335,6 +363,39 @@ def markdown_table(rows, title):
     for name, metrics in rows.items():
         lines.append(f"| {name} | " + " | ".join(f"{metrics[m]:.4f}" for m in METRIC_NAMES)
                      + " |")
+    return "\n".join(lines)
+
+
+def skeleton_summary(results):
+    """Per row over all sequences: source_error (frame-weighted, metres, where kept; with
+    source_error_legs), crossed_legs (frames, summed) and skating_ratio (pooled steps)."""
+    total = sum(r["frames"] for r in results)
+    out = {}
+    for row in results[0]["skeleton"]:
+        figures = [r["skeleton"][row] for r in results]
+        skating = np.sum([f["skating"] for f in figures], axis=0)
+        out[row] = {"skating_ratio": float(skating[0] / max(1, skating[1]))}
+        if row != "ground truth":
+            out[row]["crossed_legs"] = int(sum(f["crossed_legs"] for f in figures))
+        if all("source_error" in f for f in figures):
+            for key, group in (("source_error", "all"), ("source_error_legs", "legs")):
+                out[row][key] = sum(f["source_error"][group] * r["frames"]
+                                    for f, r in zip(figures, results)) / total
+    return out
+
+
+def skeleton_table(figures, toes):
+    """Markdown: each row's source skeleton error, crossed legs, skating ratio, toe speed."""
+    lines = ["**Source skeleton and feet** (source error: the skeleton SMRM saw against the "
+             "true source joints, m; crossed legs: frames; skating: the ratio of low, fast "
+             "foot steps; toes: m/s on the truth's contacts)", "",
+             "| row | source error | legs | crossed legs | skating ratio | toes |",
+             "|---|---|---|---|---|---|"]
+    for row, f in figures.items():
+        error = (f"{f['source_error']:.4f} | {f['source_error_legs']:.4f}"
+                 if "source_error" in f else " | ")
+        lines.append(f"| {row} | {error} | {f.get('crossed_legs', '')} | "
+                     f"{f['skating_ratio']:.4f} | {toes[row]:.3f} |")
     return "\n".join(lines)
 
 
@@ -455,13 +516,14 @@ def main(argv=None):
     started, results, model_seconds = time.perf_counter(), [], 0.0
     for index, load in enumerate(loaders):
         sequence = load()
-        rows, seconds = run_sequence(weights, sequence, wanted)
+        rows, seconds, sources = run_sequence(weights, sequence, wanted)
         model_seconds += seconds
         results.append({"sequence": str(sequence["name"]), "category": str(sequence["category"]),
                         "target_body": str(sequence["target_body"]),
                         "frames": len(sequence["source_points"]),
                         "metrics": sequence_metrics(rows, sequence),
-                        "feet": feet_on_contacts(rows, sequence)})
+                        "feet": feet_on_contacts(rows, sequence),
+                        "skeleton": skeleton_figures(rows, sources, sequence)})
         print(f"[{index + 1}/{len(loaders)}] {results[-1]['sequence']} "
               f"({results[-1]['frames']} frames): model MPJPE "
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
@@ -500,6 +562,11 @@ def summarize(results, split, other=None, other_name=None):
     feet = {"all": pooled_feet(results), **{c: pooled_feet(results, lambda r, c=c: r["category"]
                                                            == c) for c in categories}}
     sections.append(feet_table(feet))
+    if all("skeleton" in r for r in results):     # runs saved before these figures lack them
+        figures = skeleton_summary(results)
+        sections.append(skeleton_table(figures, feet["all"]))
+        for row, values in figures.items():
+            overall.setdefault(row, {}).update(values, toe_speed=feet["all"][row])
     paired = {f"{row} minus {baseline}": paired_difference(results, row, baseline)
               for row, baseline in PAIRS
               if row in results[0]["metrics"] and baseline in results[0]["metrics"]}

@@ -392,3 +392,71 @@ def evaluate(pred_joints, gt_joints, pred_points, gt_points, k=6, rest_points=No
         "PA-MPVD": _mean_distance(aligned_points, gt_points),
         "MEDL": medl(pred_points, gt_points, k=k, rest=rest_points),
     }
+
+
+JOINT_GROUPS = {
+    "torso": ("pelvis", "spine1", "spine2", "spine3", "neck", "head", "left_collar",
+              "right_collar"),
+    "legs": ("left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+             "left_foot", "right_foot"),
+    "arms": ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist",
+             "right_wrist"),
+}
+
+
+def joint_errors(joints, truth):
+    """Mean joint position error of a skeleton sequence, all joints and per ``JOINT_GROUPS``.
+
+    Args:
+        joints, truth: (T, J, 3) joints, metres.
+    Returns:
+        dict: "all", "torso", "legs", "arms" -> float, metres (no alignment).
+    """
+    errors = np.linalg.norm(_as_float64(joints, "joints", sequence=True)
+                            - _as_float64(truth, "truth", sequence=True), axis=-1)    # (T, J)
+    return {"all": float(errors.mean()), **{
+        group: float(errors[:, [JOINT_INDEX[name] for name in names]].mean())
+        for group, names in JOINT_GROUPS.items()}}
+
+
+def crossed_feet(joints, truth, margin=0.05):
+    """Frames whose ankles lie on the wrong sides of each other, against the truth's.
+
+    Each skeleton's side-to-side axis is its own hips' (left minus right, horizontal); the
+    ankles' offset along it (left minus right) has the wrong sign where the truth's is at
+    least ``margin`` (metres) from zero: the legs are crossed, or read swapped.
+
+    Args:
+        joints, truth: (T, J, 3) joints, metres, +Y up.
+    Returns:
+        (T,) bool.
+    """
+    def side(skeleton):
+        across = skeleton[:, JOINT_INDEX["left_hip"]] - skeleton[:, JOINT_INDEX["right_hip"]]
+        across[:, UP_AXIS] = 0.0
+        across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-9)
+        ankles = (skeleton[:, JOINT_INDEX["left_ankle"]]
+                  - skeleton[:, JOINT_INDEX["right_ankle"]])
+        return np.einsum("ta,ta->t", ankles, across)
+    ours = side(_as_float64(joints, "joints", sequence=True))
+    theirs = side(_as_float64(truth, "truth", sequence=True))
+    return (np.sign(ours) != np.sign(theirs)) & (np.abs(theirs) >= margin)
+
+
+def skating_steps(joints, height=0.05, speed=0.5, window=5, fps=FPS, feet=FOOT_JOINTS):
+    """The common skating measure: steps t -> t+1 where a foot is low in both frames (at most
+    ``height`` above its own lowest height over the sequence) while its horizontal speed,
+    averaged over ``window`` steps centred on it, exceeds ``speed`` (m/s).
+
+    Args:
+        joints: (T, J, 3) joints, metres, +Y up, T >= 2.
+    Returns:
+        (T - 1, F) bool; its mean is the skating ratio.
+    """
+    low = foot_contacts(joints, height, feet)                               # (T - 1, F)
+    speeds = foot_speeds(joints, fps, feet)                                 # (T - 1, F)
+    kernel = np.ones(window) / window
+    padded = np.pad(speeds, ((window // 2, window // 2), (0, 0)), mode="edge")
+    averaged = np.stack([np.convolve(padded[:, f], kernel, mode="valid")
+                         for f in range(speeds.shape[1])], axis=1)
+    return low & (averaged > speed)

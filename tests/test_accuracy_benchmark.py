@@ -166,3 +166,32 @@ def test_command_line_errors_are_one_line(tmp_path):
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert done.stderr == (f"accuracy.py: error: {tmp_path / 'no.json'}: cannot read a saved "
                            f"run ([Errno 2] No such file or directory: '{tmp_path / 'no.json'}')\n")
+
+
+def test_skeleton_figures_are_summed_and_pooled(tmp_path):
+    """source_error frame-weighted, crossed_legs summed, skating pooled over steps, the
+    truth's own skating ratio and toe speed in a 'ground truth' row of the JSON."""
+    runs = results([0.0, 0.0], [3, 1])
+    figures = ({"model": {"crossed_legs": 2, "skating": [1, 4], "source_error":
+                          {"all": 0.01, "legs": 0.02}},
+                "analytic": {"crossed_legs": 0, "skating": [0, 4], "source_error":
+                             {"all": 0.01, "legs": 0.02}},
+                "ground truth": {"skating": [0, 4]}},
+               {"model": {"crossed_legs": 1, "skating": [3, 4], "source_error":
+                          {"all": 0.05, "legs": 0.06}},
+                "analytic": {"crossed_legs": 0, "skating": [0, 4], "source_error":
+                             {"all": 0.05, "legs": 0.06}},
+                "ground truth": {"skating": [2, 4]}})
+    for run, figure in zip(runs, figures):
+        run["skeleton"] = figure
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps({"per_sequence": runs, "split": "test"}))
+    accuracy.main(["--from-json", str(path), "--json", str(path)])
+    rows = json.loads(path.read_text())["rows"]
+    assert rows["model"]["source_error"] == pytest.approx((0.01 * 3 + 0.05) / 4)
+    assert rows["model"]["source_error_legs"] == pytest.approx((0.02 * 3 + 0.06) / 4)
+    assert rows["model"]["crossed_legs"] == 3
+    assert rows["model"]["skating_ratio"] == pytest.approx(4 / 8)
+    assert rows["ground truth"]["skating_ratio"] == pytest.approx(2 / 8)
+    assert rows["ground truth"]["toe_speed"] == pytest.approx(0.25)
+    assert rows["model"]["toe_speed"] == pytest.approx(0.5)

@@ -7,10 +7,11 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from minretarget.conventions import FPS, JOINT_INDEX
 from minretarget.metrics import (
-    METRIC_NAMES, acceleration_error, evaluate, foot_contacts, foot_sliding, foot_speeds, jitter,
-    knn_edges, mean_point_error, medl, mpjpe, mpvd, pa_acceleration_error, pa_mpjpe, pa_mpvd,
-    procrustes_align)
+    METRIC_NAMES, acceleration_error, crossed_feet, evaluate, foot_contacts, foot_sliding,
+    foot_speeds, jitter, joint_errors, knn_edges, mean_point_error, medl, mpjpe, mpvd,
+    pa_acceleration_error, pa_mpjpe, pa_mpvd, procrustes_align, skating_steps)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -427,3 +428,48 @@ def test_foot_sliding_hand_computed():
     # do not count).
     np.testing.assert_allclose(foot_speeds(_feet_walk(planted, bobbing)), [[0, 1]] * 4)
     assert math.isnan(foot_sliding(_feet_walk(flying, flying), contact_height=-1.0))
+
+
+def _standing(frames, ankle_gap=0.2):
+    """(T, J, 3) a T-pose-like skeleton: hips along x (left at +x), ankles ``ankle_gap``
+    apart, at rest."""
+    joints = np.zeros((frames, 22, 3))
+    joints[:, JOINT_INDEX["left_hip"], 0], joints[:, JOINT_INDEX["right_hip"], 0] = 0.1, -0.1
+    joints[:, JOINT_INDEX["left_ankle"], 0] = ankle_gap / 2
+    joints[:, JOINT_INDEX["right_ankle"], 0] = -ankle_gap / 2
+    return joints
+
+
+def test_crossed_feet_by_hand():
+    truth = _standing(3)
+    swapped = truth.copy()
+    swapped[:, [JOINT_INDEX["left_ankle"], JOINT_INDEX["right_ankle"]]] = \
+        truth[:, [JOINT_INDEX["right_ankle"], JOINT_INDEX["left_ankle"]]]
+    np.testing.assert_array_equal(crossed_feet(swapped, truth), [True] * 3)
+    np.testing.assert_array_equal(crossed_feet(truth, truth), [False] * 3)
+    # feet together in the truth: no side to get wrong
+    together = _standing(3, ankle_gap=0.02)
+    np.testing.assert_array_equal(crossed_feet(swapped, together), [False] * 3)
+
+
+def test_skating_steps_by_hand():
+    joints = _standing(20)
+    foot = JOINT_INDEX["left_foot"]
+    joints[:, foot, 2] = np.arange(20) * (1.0 / FPS)        # 1 m/s forward, on the ground
+    joints[10:, foot, 1] = 0.2                              # lifted for the second half
+    steps = skating_steps(joints)
+    assert steps.shape == (19, 2)
+    assert steps[:8, 0].all() and not steps[10:, 0].any()  # low and fast, then lifted
+    assert not steps[:, 1].any()                           # the right foot stands still
+    slow = _standing(20)
+    slow[:, foot, 2] = np.arange(20) * (0.3 / FPS)
+    assert not skating_steps(slow).any()
+
+
+def test_joint_errors_by_group():
+    truth = np.zeros((2, 22, 3))
+    joints = truth.copy()
+    joints[:, JOINT_INDEX["left_knee"], 1] = 0.08           # one leg joint 8 cm off
+    errors = joint_errors(joints, truth)
+    assert errors["all"] == pytest.approx(0.08 / 22)
+    assert errors["legs"] == pytest.approx(0.01) and errors["arms"] == 0 == errors["torso"]
