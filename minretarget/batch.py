@@ -5,21 +5,29 @@
 JOB is TOML (Python >= 3.11) or JSON; its relative paths are relative to its own folder:
 
     sources = ["mocap/*.bvh", "captures/take_01", "walk.npz"]  # files, folders of frames, globs
-    targets = ["bodies/*.ply"]                                  # T-pose bodies
-    pairs = [{source = "08_01", target = "anna", options = {units = "cm"}}]   # optional
+    targets = ["bodies/*.ply", "heavy_woman"]     # T-pose bodies, or shipped bodies' names
+    pairs = [{source = "08_01", target = "anna", options = {source_units = "cm"}}]  # optional
     [options]                                                   # every pair's (OPTIONS)
     format = "ply,npz,glb,bvh"
     foot_leash = 0.1
 
-A source or target is named by its file or folder name without the suffix; names must be
-unique. Without ``pairs`` every source goes onto every target. ``options`` are those of
-``minretarget retarget`` (``OPTIONS``: ``--no-smoothing`` is ``smoothing = false``), a pair's
-own ``options`` override the job's. The whole job is checked before any work (files exist,
-sources and targets read, weights load, options valid) and every problem is listed at once.
+A source or target is named by its file or folder name without the suffix (a shipped body by
+its name); names must be unique. Without ``pairs`` every source goes onto every target.
+``options`` are those of ``minretarget retarget`` but ``--out``, ``--resume`` and
+``--overwrite`` (``OPTIONS``, read by retarget's own parser, ``cli.add_retarget_arguments``):
+``--source-units cm`` is ``source_units = "cm"``, ``--force`` is ``force = true``,
+``--no-smoothing`` is ``smoothing = false``; ``weights`` and ``skeleton_map`` are paths,
+relative to the job file. A pair's own ``options`` override the job's. The whole job is
+checked before any work and every problem is listed at once: files exist, options valid,
+weights load, and every source's frame 0 and every target read as ``retarget`` reads them
+(``cli.source_of``, ``cli.target_of``), in the units and up axis given or told from the body,
+one that is then not a person's size or lies along its up axis refused unless ``force``.
 
-Each pair runs as ``minretarget retarget SOURCE TARGET --out DIR/<target>/<source>`` would,
-writing the same bytes there (``cli.retarget_to_files``, its checkpoints included), then a
-done-marker, ``done.json`` (its ``summary.json`` entry). Pairs run longest first on a pool of
+Each pair runs as ``minretarget retarget SOURCE TARGET --out DIR/<target>/<source>`` with its
+options would, writing the same bytes there (``cli.retarget_to_files``, its checkpoints
+included), then a done-marker, ``done.json`` (its ``summary.json`` entry, with the lines
+``retarget`` prints about each file's units and up axis and its warnings, options written as
+a job's keys). Pairs run longest first on a pool of
 worker processes (``--workers``, default one per core) or of Ray actors (``--ray``), each
 with one BLAS and numba thread, each keeping the weights and every target's set-up (skeleton
 and skinning weights, keyed by the target's content) between pairs. A failing pair (a bad
@@ -31,13 +39,16 @@ command exits with status 0 only if every pair is done.
 """
 import argparse
 import concurrent.futures
+import contextlib
 import ctypes
 import glob
 import hashlib
+import io
 import json
 import multiprocessing
 import os
 import queue
+import re
 import signal
 import sys
 import time
@@ -51,17 +62,15 @@ import numba
 import numpy as np
 
 from .atomic import atomic_write
+from .bodies import body_names
 from .checkpoint import CHECKPOINT
-from .cli import DEFAULT_FORMATS, int_at_least, positive_float, retarget_to_files
-from .contacts import FootLock
-from .conventions import MIN_POINTS
+from .cli import (add_retarget_arguments, blas_threads, int_at_least, pipeline_settings,
+                  retarget_to_files, set_target, source_of, target_of)
 from .extras import MissingExtra, require
 from .outputs import frame_name, parse_formats, previous_outputs
 from .retargeter import Retargeter
-from .smoothing import Smoothing
-from .sources import open_source, read_target
-from .units import UNITS, UP_AXES, make_space
-from .validation import InputWarning, as_point_cloud, check_body
+from .units import make_space
+from .validation import InputWarning
 from .weights import load_weights
 
 DONE = "done.json"               # in a pair's folder once its outputs are complete
@@ -70,63 +79,99 @@ ATTEMPTS = 3                     # runs of a pair whose worker dies, before it c
 REPORT_EVERY = 0.5               # seconds between a worker's progress reports
 
 
-def _boolean(value):
-    if not isinstance(value, bool):
-        raise ValueError(f"must be true or false, got {value!r}")
-    return value
+class _Parser(argparse.ArgumentParser):
+    """``minretarget retarget``'s arguments whose errors raise ValueError (argparse's message),
+    so that a job lists them all."""
+
+    def error(self, message):
+        raise ValueError(message)
 
 
-def _one_of(choices):
-    def check(value):
-        if value not in choices:
-            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
-        return value
-    return check
+PARSER = _Parser(prog="minretarget retarget", add_help=False)
+add_retarget_arguments(PARSER)
+SET_BY_BATCH = ("out", "resume", "overwrite")       # and SOURCE, TARGET
+PATHS = ("weights", "skeleton_map")                 # relative to the job file
 
 
-def _optional(check):
-    return lambda value: None if value is None else check(value)
+def _switch(action):
+    """What a job's key is set to to give a flag: True (``--force``), False (``--no-X``), or
+    None for an option that takes a value."""
+    return None if action.nargs != 0 else not action.dest.startswith("no_")
 
 
-def _text(value):
-    if not isinstance(value, str):
-        raise ValueError(f"must be a string, got {value!r}")
-    return value
+def _key(action):
+    """A ``retarget`` option's key in a job: ``source_units``, ``force``, ``smoothing``."""
+    return action.dest.removeprefix("no_") if _switch(action) is False else action.dest
 
 
-def _formats(value):
-    return parse_formats(",".join(value) if isinstance(value, list) else _text(value))
+# Key -> ``retarget``'s argparse action, for each of its options (argparse lists them nowhere
+# public): ``--fps`` is ``fps``, ``--up-axis`` is ``up_axis``, ``--force`` is ``force = true``,
+# ``--no-X`` is ``X = false``. A value of None (JSON's null) is the option's default.
+OPTIONS = {_key(action): action for action in PARSER._actions
+           if action.option_strings and action.dest not in SET_BY_BATCH}
+_FLAGS = {flag: action for action in OPTIONS.values() for flag in action.option_strings}
 
 
-# Option -> (default, check). The options of ``minretarget retarget``: ``--fps`` is ``fps``,
-# ``--up-axis`` is ``up_axis``, ``--no-X`` is ``X = false``, ``--mirror-source`` is
-# ``mirror_source = true``. ``weights`` is a path, relative to the job file.
-OPTIONS = {
-    "format": (parse_formats(DEFAULT_FORMATS), _formats),
-    "fps": (None, _optional(lambda value: positive_float(str(value)))),
-    "units": ("m", _one_of(tuple(UNITS))),
-    "up_axis": ("y", _one_of(tuple(UP_AXES))),
-    "points": (None, _optional(lambda value: int_at_least(1)(str(value)))),
-    "seed": (0, lambda value: int_at_least(0)(str(value))),
-    "weights": (None, _optional(_text)),
-    "smoothing": (True, _boolean),
-    "foot_lock": (True, _boolean),
-    "foot_leash": (None, _optional(lambda value: positive_float(str(value)))),
-    "mirror_source": (False, _boolean),
-    "refine": (True, _boolean),
-    "denoise": (True, _boolean),
-    "rest_pose": (True, _boolean),
-    "facing_check": (True, _boolean),
-}
-DEFAULTS = {name: default for name, (default, _) in OPTIONS.items()}
+def in_job_terms(message):
+    """``message`` (``retarget``'s or its parser's) with its options written as a job's keys:
+    ``--source-units cm`` as ``source_units = "cm"``, ``--force`` as ``force = true``,
+    ``argument --fps: ...`` as ``fps: ...``; the batch's own (``--resume``) kept."""
+    def as_key(match):
+        action, value = _FLAGS.get(match[2]), match[3]
+        if action is None:
+            return match[0]
+        if _switch(action) is None and value in (action.choices or ()):
+            return f'{_key(action)} = "{value}"'
+        written = _key(action) if _switch(action) is None else (
+            f"{_key(action)} = {str(_switch(action)).lower()}")
+        return written + (f" {value}" if value else "")
+
+    return re.sub(r"(argument )?(?<![\w-])(--[a-z][a-z-]*)(?: (\w+))?", as_key, message)
+
+
+def _argv(options):
+    """``retarget``'s command-line arguments for a job's ``options`` {key: value}."""
+    argv = []
+    for key, value in options.items():
+        action = OPTIONS[key]
+        flag, switch = action.option_strings[0], _switch(action)
+        if value is None:
+            continue
+        if switch is not None:
+            if not isinstance(value, bool):
+                raise ValueError(f"{key}: must be true or false, got {value!r}")
+            argv += [flag] if value is switch else []
+        elif key == "format" and isinstance(value, list) and all(
+                isinstance(item, str) for item in value):
+            argv.append(f"{flag}={','.join(value)}")
+        elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            argv.append(f"{flag}={value}")
+        else:
+            raise ValueError(f"{key}: must be a string or a number, got {value!r}")
+    return argv
+
+
+def parse_options(source, target, out, options):
+    """``retarget``'s parsed arguments (argparse.Namespace) for ``SOURCE TARGET --out OUT`` and
+    a job's ``options``; ValueError naming the option, in a job's terms."""
+    try:
+        return PARSER.parse_args([*_argv(options), "--out", out, "--", source, target])
+    except ValueError as error:
+        raise ValueError(in_job_terms(str(error))) from None
+
+
+def _as_options(args):
+    """{key: value} of every option in ``args`` (``parse_options``'s), defaults included."""
+    return {key: getattr(args, action.dest) if _switch(action) is not False else
+            not getattr(args, action.dest) for key, action in OPTIONS.items()}
 
 
 class Pair(NamedTuple):
     """One source onto one target: everything a worker needs to run it."""
     name: str          # "<target>/<source>", its folder under the job's output folder
     source: str        # absolute path of the source motion
-    target: str        # absolute path of the target body
-    options: dict      # every name of OPTIONS (``weights`` an absolute path or None)
+    target: str        # absolute path of the target body, or a shipped body's name
+    options: dict      # every key of OPTIONS (paths absolute), as ``parse_options`` takes
     frames: int        # T, the source's frame count (30 fps for BVH)
     folder: str        # absolute path of its output folder
 
@@ -139,23 +184,39 @@ class JobError(ValueError):
         super().__init__(f"{job}: {len(problems)} problem(s):\n  " + "\n  ".join(problems))
 
 
-def check_options(raw, where, base=DEFAULTS):
-    """``base`` updated with the options table ``raw``: (options, [problems])."""
+def check_options(raw, where, folder, base=None):
+    """``base`` (a job's options; None: none) updated with the options table ``raw``, its
+    paths taken from ``folder``, each value checked by ``retarget``'s parser alone (a bad one
+    left out), then those together: (options, [problems])."""
+    options = dict(base or {})
     if not isinstance(raw, dict):
-        return dict(base), [f"{where}: must be a table of options, got {raw!r}"]
-    options, problems = dict(base), []
-    for name, value in raw.items():
-        if name not in OPTIONS:
-            problems.append(f"{where}: unknown option {name!r} (options: {', '.join(OPTIONS)})")
+        return options, [f"{where}: must be a table of options, got {raw!r}"]
+    problems = []
+    for key, value in raw.items():
+        if key not in OPTIONS:
+            problems.append(f"{where}: unknown option {key!r} (options: {', '.join(OPTIONS)})")
             continue
+        if key in PATHS and isinstance(value, str):
+            value = str(folder / value)
         try:
-            options[name] = OPTIONS[name][1](value)
-        except (ValueError, argparse.ArgumentTypeError) as error:
-            problems.append(f"{where}: {name}: {error}")
-    if options["foot_leash"] is not None and not options["foot_lock"] and (
-            "foot_leash" in raw or "foot_lock" in raw):
-        problems.append(f"{where}: foot_leash needs foot_lock (it is false)")
+            parse_options("source", "target", "out", {key: value})
+        except ValueError as error:
+            problems.append(f"{where}: {error}")
+        else:
+            options[key] = value
+    clash = _clash(options)                     # e.g. foot_leash with foot_lock = false
+    if raw and clash and not _clash(base or {}):    # said once, where it arises
+        problems.append(f"{where}: {clash}")
     return options, problems
+
+
+def _clash(options):
+    """Why options each valid alone are refused together, or None."""
+    try:
+        parse_options("source", "target", "out", options)
+    except ValueError as error:
+        return str(error)
+    return None
 
 
 def _read_table(path):
@@ -177,8 +238,9 @@ def _name(path):
     return path.name if path.is_dir() else Path(path.name.removesuffix(".gz")).stem
 
 
-def _expand(entries, key, base, problems):
-    """{name: absolute Path} of a job's ``sources`` or ``targets`` (paths and globs)."""
+def _expand(entries, key, base, problems, bodies=()):
+    """{name: absolute path, or a shipped body's name} of a job's ``sources`` or ``targets``
+    (paths, globs, and for targets the names in ``bodies``)."""
     if not isinstance(entries, list) or not entries:
         problems.append(f"{key}: must be a non-empty list of paths or glob patterns")
         return {}
@@ -192,20 +254,24 @@ def _expand(entries, key, base, problems):
             paths = [Path(p) for p in sorted(glob.glob(str(pattern), recursive=True))]
         else:
             paths = [pattern] if pattern.exists() else []
-        if not paths:
-            problems.append(f"{key}: {entry}: " + ("matches nothing" if is_glob else
-                                                   "no such file or folder"))
-        for path in paths:
-            name = _name(path)
-            if name in found and found[name] != path.resolve():
-                problems.append(f"{key}: {found[name]} and {path} have the same name "
+        places = [(_name(path), path.resolve()) for path in paths]
+        if not paths and not is_glob and entry in bodies:
+            places = [(entry, entry)]       # read by name, as retarget reads it
+        elif not paths:
+            problems.append(f"{key}: {entry}: " + (
+                "matches nothing" if is_glob else "no such file or folder" + (
+                    f", nor a shipped body ({', '.join(bodies)})" if bodies else "")))
+        for name, place in places:
+            if name in found and found[name] != place:
+                problems.append(f"{key}: {found[name]} and {place} have the same name "
                                 f"{name!r}: rename one")
-            found[name] = path.resolve()
+            found[name] = place
     return found
 
 
-def _pairs(raw, sources, targets, options, problems):
-    """[(source name, target name, options)] of the job's ``pairs``, or every combination."""
+def _pairs(raw, sources, targets, options, folder, problems):
+    """[(source name, target name, options)] of the job's ``pairs``, or every combination;
+    ``folder``: the job file's."""
     if raw is None:
         return [(s, t, options) for t in targets for s in sources]
     if not isinstance(raw, list):
@@ -219,7 +285,7 @@ def _pairs(raw, sources, targets, options, problems):
                             f"got {pair!r}")
             continue
         pair_options, found = check_options(pair.get("options", {}), f"{where}: options",
-                                            options)
+                                            folder, options)
         problems += found
         for key, names in (("source", sources), ("target", targets)):
             if pair.get(key) not in names:
@@ -242,8 +308,8 @@ def read_job(path, out_dir):
         [Pair], sorted by frame count, most first (ties in the job's order).
     Raises:
         JobError listing every problem found: the file, unknown keys and options, bad option
-        values, missing paths, duplicate names, sources and targets that do not read,
-        weights that do not load.
+        values, missing paths, duplicate names, sources and targets that do not read or whose
+        units check fails (without ``force``), weights that do not load.
     """
     path, out_dir = Path(path), Path(out_dir).resolve()
     try:
@@ -256,14 +322,12 @@ def read_job(path, out_dir):
                 for key in job if key not in ("sources", "targets", "pairs", "options")]
     base = path.resolve().parent
     sources = _expand(job.get("sources"), "sources", base, problems)
-    targets = _expand(job.get("targets"), "targets", base, problems)
-    options, found = check_options(job.get("options", {}), "options")
+    targets = _expand(job.get("targets"), "targets", base, problems, body_names())
+    options, found = check_options(job.get("options", {}), "options", base)
     problems += found
-    listed = _pairs(job.get("pairs"), sources, targets, options, problems)
+    listed = _pairs(job.get("pairs"), sources, targets, options, base, problems)
     if problems:          # reading files under options that do not parse would only add noise
         raise JobError(path, problems)
-    listed = [(s, t, o if o["weights"] is None else {**o, "weights": str(base / o["weights"])})
-              for s, t, o in listed]
     pairs = _read_files(listed, sources, targets, out_dir, problems)
     if problems:
         raise JobError(path, list(dict.fromkeys(problems)))
@@ -271,37 +335,39 @@ def read_job(path, out_dir):
 
 
 def _read_files(listed, sources, targets, out_dir, problems):
-    """[Pair] of the (source name, target name, options) ``listed`` whose weights load, whose
-    source opens and whose target reads (each read once per units and axes); the others'
-    problems are added to ``problems``."""
-    for weights in dict.fromkeys(o["weights"] for _, _, o in listed):
-        try:
-            load_weights(weights)
-        except (OSError, ValueError) as error:
-            problems.append(f"weights: {error}")
-    counts, bodies, pairs = {}, {}, []
+    """[Pair] of the (source name, target name, options) ``listed`` whose weights load and
+    whose source and target read as ``retarget`` reads them (each once per options); the
+    others' problems are added to ``problems``."""
+    read, pairs = {}, []           # (what, its options) -> (result, error or None)
     for source, target, options in listed:
-        space = make_space(options["units"], options["up_axis"])
-        key = (source, space, options["fps"], options["points"])
-        if key not in counts:
-            try:
-                counts[key] = open_source(sources[source], space, fps=options["fps"],
-                                          points=options["points"]).count
-            except (OSError, ValueError) as error:
-                counts[key] = None
-                problems.append(f"source {source}: {error}")
-        if (target, space) not in bodies:
-            try:
-                as_point_cloud(read_target(targets[target], space)[0], "its points", MIN_POINTS)
-                bodies[target, space] = True
-            except (OSError, ValueError) as error:
-                bodies[target, space] = False
-                problems.append(f"target {target}: {error}")
-        if counts[key] is not None and bodies[target, space]:
-            name = f"{target}/{source}"
-            pairs.append(Pair(name, str(sources[source]), str(targets[target]), options,
-                              counts[key], str(out_dir / name)))
+        name = f"{target}/{source}"
+        args = parse_options(str(sources[source]), str(targets[target]), str(out_dir / name),
+                             options)
+        known = json.dumps(options, sort_keys=True)
+        checks = {("weights", args.weights): lambda args: load_weights(args.weights),
+                  (f"source {source}", known): lambda args: source_of(args)[1],     # T
+                  (f"target {target}", known): target_of}
+        for key, reader in checks.items():
+            if key not in read:
+                read[key] = _quietly(reader, args)
+                if read[key][1] is not None:
+                    problems.append(f"{key[0]}: {read[key][1]}")
+        if all(read[key][1] is None for key in checks):
+            pairs.append(Pair(name, str(sources[source]), str(targets[target]),
+                              _as_options(args), read[f"source {source}", known][0],
+                              str(out_dir / name)))
     return pairs
+
+
+def _quietly(read, args):
+    """``read(args)`` without the lines it prints or the warnings it gives: (its result,
+    None), or (None, its error in a job's terms)."""
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        try:
+            return read(args), None
+        except (OSError, ValueError) as error:
+            return None, in_job_terms(str(error))
 
 
 # --- a worker: one process (or Ray actor), pairs one after another ---------------------------
@@ -336,32 +402,28 @@ def _content_hash(*arrays):
     return digest.hexdigest()
 
 
-def _retargeter(options):
-    """A Retargeter with a pair's options, as ``minretarget retarget`` makes it."""
-    weights = options["weights"]
-    if weights not in _WEIGHTS:
-        _WEIGHTS[weights] = load_weights(weights)
-    foot_lock = FootLock() if options["foot_lock"] else None
-    if options["foot_leash"] is not None:
-        foot_lock = foot_lock._replace(max_offset=options["foot_leash"])
-    return Retargeter(_WEIGHTS[weights], warn=False,
-                      smoothing=Smoothing() if options["smoothing"] else None,
-                      foot_lock=foot_lock, mirror_source=options["mirror_source"],
-                      refine=options["refine"], denoise=options["denoise"],
-                      rest_pose=options["rest_pose"], facing_check=options["facing_check"])
+def _retargeter(args):
+    """A Retargeter for a pair's parsed options, as ``minretarget retarget`` makes it, with
+    the worker's copy of its weights."""
+    if args.weights not in _WEIGHTS:
+        _WEIGHTS[args.weights] = load_weights(args.weights)
+    return Retargeter(_WEIGHTS[args.weights], warn=False, **pipeline_settings(args))
 
 
-def _set_target(retargeter, path, options, space):
-    """``cli.set_target`` with the target's skeleton and skinning weights computed once per
-    worker for each content, weights and ``refine`` (the only options they depend on)."""
-    points, faces = read_target(path, space)
-    key = (options["weights"], options["refine"], _content_hash(points, faces))
-    try:
-        retargeter.set_target(points, faces, *_TARGETS.get(key, (None, None)))
-    except ValueError as error:
-        raise ValueError(f"{path}: {error}") from None
-    check_body(points, path, space, tpose=True)
+def _set_target(retargeter, args, points, faces, space):
+    """``cli.set_target`` (``cli.target_of``'s target) with its skeleton and skinning weights
+    computed once per worker for each content, weights and refine (all they depend on)."""
+    key = (args.weights, not args.no_refine, _content_hash(points, faces))
+    set_target(retargeter, points, faces, args.target, space, *_TARGETS.get(key, (None, None)))
     _TARGETS[key] = retargeter.target.tpose_joints, retargeter.target.skin_weights
+
+
+def _reporting(open_at, name):
+    """``open_at`` whose Sources report the pair's progress (``_reported``)."""
+    def reporting(first):
+        source = open_at(first)
+        return source._replace(frames=_reported(source.frames, first, name))
+    return reporting
 
 
 def _reported(frames, first, name):
@@ -393,41 +455,43 @@ def _entry(pair, status, **fields):
 
 
 def run_pair(pair):
-    """Run one pair into its folder and mark it done (module docstring); never raises for
-    the pair's own faults (a stop, Ctrl-C, raises KeyboardInterrupt after a checkpoint).
+    """Run one pair into its folder as ``minretarget retarget`` would (``cli.target_of``,
+    ``cli.source_of``, ``cli.retarget_to_files``) and mark it done (module docstring); never
+    raises for the pair's own faults (a stop, Ctrl-C, raises KeyboardInterrupt after a
+    checkpoint).
 
     Returns:
         its summary entry: {"pair", "source", "target", "options", "frames", "status":
-        "done" or "failed", "outputs" (file names in its folder), "seconds", "warnings";
-        "error" when failed}.
+        "done" or "failed", "outputs" (file names in its folder), "seconds", "read_as" (the
+        lines retarget prints about each file's units and up axis), "warnings"; "error" when
+        failed}.
     """
     start = time.perf_counter()
-    entry = _entry(pair, "done", outputs=output_names(pair.options["format"], pair.frames))
-    options, folder = pair.options, Path(pair.folder)
-    space = make_space(options["units"], options["up_axis"])
-
-    def open_at(first):
-        source = open_source(pair.source, space, fps=options["fps"], points=options["points"],
-                             seed=options["seed"], start=first)
-        return source._replace(frames=_reported(source.frames, first, pair.name))
-
-    with warnings.catch_warnings(record=True) as caught:
+    formats = parse_formats(pair.options["format"])
+    entry = _entry(pair, "done", outputs=output_names(formats, pair.frames))
+    folder, said = Path(pair.folder), io.StringIO()
+    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(said):
         warnings.simplefilter("always", InputWarning)
         try:
-            retargeter = _retargeter(options)
-            _set_target(retargeter, pair.target, options, space)
-            # A checkpoint: the pair was cut short (a killed worker or batch), go on from it;
-            # else any files there are a killed run's from before its first checkpoint.
-            resume = CHECKPOINT in previous_outputs(folder)
-            retarget_to_files(retargeter, open_at, folder, options["format"], space,
-                              {"points": options["points"], "seed": options["seed"]},
-                              resume=resume, overwrite=not resume, progress=False)
+            args = parse_options(pair.source, pair.target, pair.folder, pair.options)
+            with blas_threads(args.threads):
+                retargeter = _retargeter(args)
+                _set_target(retargeter, args, *target_of(args))
+                open_at, _, settings = source_of(args)
+                # A checkpoint: the pair was cut short (a killed worker or batch), go on from
+                # it; else any files there are a killed run's from before its first checkpoint.
+                resume = CHECKPOINT in previous_outputs(folder)
+                retarget_to_files(retargeter, _reporting(open_at, pair.name), folder, formats,
+                                  make_space(args.out_units, args.out_up), settings,
+                                  resume=resume, overwrite=not resume, progress=False)
         except Exception as error:      # noqa: BLE001  (a pair's fault must not stop the batch)
             expected = isinstance(error, (ValueError, OSError, MemoryError))
-            entry.update(status="failed", outputs=[], error=str(error) if expected else
-                         f"internal error: {type(error).__name__}: {error}")
+            entry.update(status="failed", outputs=[], error=in_job_terms(str(error)) if expected
+                         else f"internal error: {type(error).__name__}: {error}")
     entry.update(seconds=round(time.perf_counter() - start, 3),
-                 warnings=[str(w.message) for w in caught if w.category is InputWarning])
+                 read_as=said.getvalue().splitlines(),
+                 warnings=[in_job_terms(str(w.message)) for w in caught
+                           if issubclass(w.category, InputWarning)])
     if entry["status"] == "done":
         with atomic_write(folder / DONE) as file:
             file.write(json.dumps(entry, indent=1).encode())

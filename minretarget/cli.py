@@ -86,11 +86,13 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
                                    facing_check=facing_check)
 
 
-def set_target(retargeter, points, faces, name, space=CANONICAL):
-    """``retargeter.set_target(points, faces)``, its errors prefixed with the target's name;
-    warns (``validation.InputWarning``) if it does not look like a T-pose person in ``space``."""
+def set_target(retargeter, points, faces, name, space=CANONICAL, tpose_joints=None,
+               skin_weights=None):
+    """``retargeter.set_target(points, faces, tpose_joints, skin_weights)``, its errors
+    prefixed with the target's name; warns (``validation.InputWarning``) if it does not look
+    like a T-pose person in ``space``."""
     try:
-        retargeter.set_target(points, faces)
+        retargeter.set_target(points, faces, tpose_joints, skin_weights)
     except ValueError as error:
         raise ValueError(f"{name}: {error}") from None
     check_body(points, name, space, tpose=True, role="target")
@@ -266,23 +268,37 @@ def file_space(points, name, role, units=None, up_axis=None, force=False, min_po
     return space
 
 
-def _retarget(args):
-    start = time.perf_counter()
-    space = make_space(args.out_units, args.out_up)
-    formats = parse_formats(args.format)
+def pipeline_settings(args):
+    """The Retargeter settings that ``retarget``'s parsed options ``args`` ask for: the
+    keywords of ``load_retargeter`` (and of ``Retargeter``) but ``weights``."""
     foot_lock = None if args.no_foot_lock else FootLock()
     if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
         foot_lock = foot_lock._replace(max_offset=args.foot_leash)
-    retargeter = load_retargeter(args.weights, None if args.no_smoothing else Smoothing(),
-                                 foot_lock, args.mirror_source, not args.no_refine,
-                                 not args.no_denoise, not args.no_rest_pose,
-                                 not args.no_facing_check)
-    # Both files read as they are (the canonical space changes nothing), then in their own.
-    as_in_file, target_faces = read_target(args.target, CANONICAL)
-    target_space = file_space(as_in_file, args.target, "target", args.target_units or args.units,
-                              args.target_up or args.up_axis, args.force, MIN_POINTS)
-    set_target(retargeter, to_canonical(as_in_file, target_space), target_faces, args.target,
-               target_space)
+    return {"smoothing": None if args.no_smoothing else Smoothing(), "foot_lock": foot_lock,
+            "mirror_source": args.mirror_source, "refine": not args.no_refine,
+            "denoise": not args.no_denoise, "rest_pose": not args.no_rest_pose,
+            "facing_check": not args.no_facing_check}
+
+
+def target_of(args):
+    """``retarget``'s TARGET read in its units and up axis, given or told from the body
+    (``file_space``, which says them in a line): (V, 3) float32 canonical points, (F, 3)
+    faces or None, and its ``units.Space``; ValueError naming the file."""
+    # Read as it is (the canonical space changes nothing), then in its own space.
+    as_in_file, faces = read_target(args.target, CANONICAL)
+    space = file_space(as_in_file, args.target, "target", args.target_units or args.units,
+                       args.target_up or args.up_axis, args.force, MIN_POINTS)
+    return to_canonical(as_in_file, space), faces, space
+
+
+def source_of(args):
+    """``retarget``'s SOURCE opened in its units and up axis, given or told from its frame 0
+    (``file_space``), as ``target_of``; warns when ``--points`` exceeds that frame's.
+
+    Returns:
+        open_at: ``open_at(start)`` -> ``sources.Source`` from frame ``start`` (canonical).
+        count: T, its frame count; settings: ``retarget_to_files``'s ``settings``.
+    """
     skeleton_map = args.skeleton_map and read_skeleton_map(args.skeleton_map)
     reading = {"fps": args.fps, "points": args.points, "seed": args.seed,
                "skeleton_map": skeleton_map}
@@ -290,19 +306,29 @@ def _retarget(args):
     if raw.count == 0:
         raise ValueError(f"{raw.path}: holds no frames")
     frame_0 = next(iter(raw.frames))
-    source_space = file_space(frame_0, raw.frame_name(0), "source",
-                              args.source_units or args.units, args.source_up or args.up_axis,
-                              args.force, MIN_POINTS if raw.kind == "points" else 1)
+    space = file_space(frame_0, raw.frame_name(0), "source", args.source_units or args.units,
+                       args.source_up or args.up_axis, args.force,
+                       MIN_POINTS if raw.kind == "points" else 1)
     if args.points and len(frame_0) < args.points:
         warnings.warn(f"{raw.frame_name(0)}: {len(frame_0)} points, fewer than --points "
                       f"{args.points}: clouds that small are used whole", InputWarning)
 
     def open_at(first):
-        return open_source(args.source, source_space, start=first, **reading)
+        return open_source(args.source, space, start=first, **reading)
 
-    source = retarget_to_files(retargeter, open_at, args.out, formats, space,
-                               {"points": args.points, "seed": args.seed,
-                                "skeleton_map": skeleton_map},
+    return open_at, raw.count, {"points": args.points, "seed": args.seed,
+                                "skeleton_map": skeleton_map}
+
+
+def _retarget(args):
+    start = time.perf_counter()
+    space = make_space(args.out_units, args.out_up)
+    formats = parse_formats(args.format)
+    retargeter = load_retargeter(args.weights, **pipeline_settings(args))
+    points, faces, target_space = target_of(args)
+    set_target(retargeter, points, faces, args.target, target_space)
+    open_at, _, settings = source_of(args)
+    source = retarget_to_files(retargeter, open_at, args.out, formats, space, settings,
                                resume=args.resume, overwrite=args.overwrite)
     print(f"retargeted {frames_text(source.count)} at {source.fps:g} fps in "
           f"{time.perf_counter() - start:.1f} s; wrote "
@@ -396,30 +422,14 @@ class OneLineErrors(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser():
-    parser = OneLineErrors(
-        prog="minretarget", description="Correspondence-free online human motion retargeting: "
-        "make a T-pose target body perform a source motion.")
-    parser.add_argument("--version", action="version", version=f"minretarget {__version__}")
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    weights_help = "weights .npz (default: the weights shipped with minretarget)"
-    threads_help = ("BLAS threads (default 1: more are faster only on an idle machine, and "
-                    "several times slower on a shared one)")
+WEIGHTS_HELP = "weights .npz (default: the weights shipped with minretarget)"
+THREADS_HELP = ("BLAS threads (default 1: more are faster only on an idle machine, and several "
+                "times slower on a shared one)")
 
-    demo = commands.add_parser("demo", help="retarget the shipped sample, write every output "
-                               "and a preview")
-    demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
-    demo.add_argument("--weights", default=None, help=weights_help)
-    demo.add_argument("--threads", type=int_at_least(1), default=1, help=threads_help)
-    demo.set_defaults(run=_demo)
 
-    retarget = commands.add_parser(
-        "retarget", help="retarget a motion onto a target body",
-        description="Retarget SOURCE (a folder of per-frame .ply/.obj/.xyz/.npy point clouds, "
-        "a .npy/.npz array (T, P, 3) of frames, or a .bvh skeleton motion) onto TARGET (a "
-        ".ply/.obj mesh or point cloud, a .xyz/.npy (V, 3) file, a .npz holding "
-        "target_points (a result's), points or vertices, with their faces, in T-pose; or the "
-        "name of a shipped body: minretarget bodies).")
+def add_retarget_arguments(retarget):
+    """Add ``minretarget retarget``'s arguments to the parser ``retarget`` (also how
+    ``minretarget batch`` reads a pair's options)."""
     retarget.add_argument("source", help="SOURCE motion")
     retarget.add_argument("target", help="TARGET body in T-pose, or a shipped body's name")
     retarget.add_argument("--out", required=True, help="output folder")
@@ -457,8 +467,8 @@ def build_parser():
     retarget.add_argument("--seed", type=int_at_least(0), default=0,
                           help="seed of the --points subsets (default 0); each frame's subset "
                           "depends only on it and the frame's index")
-    retarget.add_argument("--weights", default=None, help=weights_help)
-    retarget.add_argument("--threads", type=int_at_least(1), default=1, help=threads_help)
+    retarget.add_argument("--weights", default=None, help=WEIGHTS_HELP)
+    retarget.add_argument("--threads", type=int_at_least(1), default=1, help=THREADS_HELP)
     retarget.add_argument("--no-smoothing", action="store_true",
                           help="do not smooth the source skeleton of each point cloud over "
                                "time (default: smoothed against jitter; the denoiser still "
@@ -499,6 +509,30 @@ def build_parser():
     again.add_argument("--overwrite", action="store_true",
                        help="replace the files of an earlier run in --out (without it, a "
                        "folder holding them is refused)")
+
+
+def build_parser():
+    parser = OneLineErrors(
+        prog="minretarget", description="Correspondence-free online human motion retargeting: "
+        "make a T-pose target body perform a source motion.")
+    parser.add_argument("--version", action="version", version=f"minretarget {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    demo = commands.add_parser("demo", help="retarget the shipped sample, write every output "
+                               "and a preview")
+    demo.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    demo.add_argument("--weights", default=None, help=WEIGHTS_HELP)
+    demo.add_argument("--threads", type=int_at_least(1), default=1, help=THREADS_HELP)
+    demo.set_defaults(run=_demo)
+
+    retarget = commands.add_parser(
+        "retarget", help="retarget a motion onto a target body",
+        description="Retarget SOURCE (a folder of per-frame .ply/.obj/.xyz/.npy point clouds, "
+        "a .npy/.npz array (T, P, 3) of frames, or a .bvh skeleton motion) onto TARGET (a "
+        ".ply/.obj mesh or point cloud, a .xyz/.npy (V, 3) file, a .npz holding "
+        "target_points (a result's), points or vertices, with their faces, in T-pose; or the "
+        "name of a shipped body: minretarget bodies).")
+    add_retarget_arguments(retarget)
     retarget.set_defaults(run=_retarget)
 
     from .batch import add_command         # here: batch imports this module
@@ -522,7 +556,7 @@ def build_parser():
 
     warmup = commands.add_parser("warmup", help="compile the kernels (about 30 s, once per "
                                  "machine and release: later runs load them from a cache)")
-    warmup.add_argument("--weights", default=None, help=weights_help)
+    warmup.add_argument("--weights", default=None, help=WEIGHTS_HELP)
     warmup.set_defaults(run=_warmup)
     return parser
 

@@ -1,5 +1,6 @@
-"""`minretarget batch`: a whole job checked before any work, each pair's outputs the bytes of
-its own `retarget` run (local pool and Ray alike), resume, failures kept to their pair, a
+"""`minretarget batch`: a whole job checked before any work (units checks included), each pair's
+outputs the bytes of its own `retarget` run with the same options (local pool and Ray alike;
+units told from the files, shipped bodies by name), resume, failures kept to their pair, a
 killed worker's pair run again."""
 import json
 import os
@@ -58,16 +59,20 @@ def files(folder):
             if p.is_file() and p.name not in (batch.SUMMARY, batch.DONE)}
 
 
+def retarget(source, target, out):
+    """`minretarget retarget SOURCE TARGET --out OUT` with OPTIONS' options."""
+    assert cli.main(["retarget", str(source), str(target), "--out", str(out), "--format",
+                     OPTIONS["format"], "--points", str(SUBSET), "--weights", WEIGHTS]) == 0
+
+
 @pytest.fixture(scope="module")
 def reference(library):
     """Each pair run alone by `minretarget retarget`, as one tree of files."""
     out = library / "single"
     for target in ("slim", "wide"):
         for source in ("long", "short"):
-            assert cli.main(["retarget", str(library / "motions" / f"{source}.npy"),
-                             str(library / f"{target}.ply"), "--out", str(out / target / source),
-                             "--format", OPTIONS["format"], "--points", str(SUBSET),
-                             "--weights", WEIGHTS]) == 0
+            retarget(library / "motions" / f"{source}.npy", library / f"{target}.ply",
+                     out / target / source)
     return files(out)
 
 
@@ -97,8 +102,9 @@ smooth = false
         batch.run_batch(job, tmp_path / "out", progress=False)
     problems = "\n".join(raised.value.problems)
     for expected in ("unknown key 'colour'", "missing.bvh: no such file", "*.obj: matches "
-                     "nothing", "units: must be one of m, cm, mm, got 'inch'", "foot_leash "
-                     "needs foot_lock", "unknown option 'smooth'", "target 'fat' is not a name"):
+                     "nothing", "options: units: invalid choice: 'inch'", "options: foot_leash: "
+                     "not allowed with foot_lock = false", "unknown option 'smooth'",
+                     "target 'fat' is not a name"):
         assert expected in problems
     assert len(raised.value.problems) == 7
     assert not (tmp_path / "out").exists()
@@ -106,6 +112,52 @@ smooth = false
     job.write_text(f'sources = ["motions/*.npy"]\ntargets = ["{library}/slim.ply"]\n')
     with pytest.raises(batch.JobError, match="source nan: .*expected an array of frames"):
         batch.run_batch(job, tmp_path / "out", progress=False)
+
+
+def test_a_units_failure_is_listed_unless_forced(library, tmp_path):
+    """As `retarget` refuses a body that is not a person's size in the units given, the job
+    check lists each such pair's file, its advice in a job's keys; force = true runs them."""
+    job = write_job(tmp_path, sources=[str(library / "motions" / "short.npy")],
+                    targets=[str(library / "slim.ply"), str(library / "wide.ply")],
+                    pairs=[{"source": "short", "target": "slim",
+                            "options": {"target_units": "cm"}},
+                           {"source": "short", "target": "wide",
+                            "options": {"source_units": "mm"}}])
+    with pytest.raises(batch.JobError) as raised:
+        batch.read_job(job, tmp_path / "out")
+    target, source = raised.value.problems
+    assert target.startswith(f"target slim: {library / 'slim.ply'}: the body is 0.018 m (1.8 "
+                             "cm) tall") and 'use target_units = "m"' in target
+    assert source.startswith(f"source short: {library / 'motions' / 'short.npy'}: frame 0: "
+                             "the body is 0.00") and 'use source_units = "m"' in source
+    assert all(p.endswith("nothing written (force = true goes on anyway)")
+               for p in (target, source))
+    job.write_text(job.read_text().replace('"options": {"format"',
+                                           '"options": {"force": true, "format"'))
+    pairs = batch.read_job(job, tmp_path / "out")
+    assert [(p.name, p.options["force"], p.frames) for p in pairs] == [
+        ("slim/short", True, 20), ("wide/short", True, 20)]
+
+
+def test_centimetres_told_and_a_shipped_body_as_retarget_does(library, tmp_path):
+    """A source in centimetres with no units given, onto a mesh and onto a shipped body by
+    name: each pair's bytes are `retarget`'s (outputs in metres), and so are its lines
+    about each file's units."""
+    np.save(tmp_path / "walk_cm.npy", walk(8, 2) * 100)
+    job = write_job(tmp_path, sources=["walk_cm.npy"], targets=[str(library / "slim.ply"),
+                                                                 "child"])
+    summary = batch.run_batch(job, tmp_path / "out", workers=1, progress=False)
+    for target in (library / "slim.ply", "child"):
+        retarget(tmp_path / "walk_cm.npy", target, tmp_path / "single" / Path(target).stem /
+                 "walk_cm")
+    assert files(tmp_path / "out") == files(tmp_path / "single")
+    with np.load(tmp_path / "out" / "child" / "walk_cm" / "result.npz") as result:
+        assert str(result["units"]) == "m" and str(result["up_axis"]) == "y"
+    slim, child = summary["pairs"]
+    assert child["target"] == "child" and child["options"]["source_units"] is None
+    assert child["read_as"][0].startswith("target: metres (detected), Y up (detected)")
+    assert child["read_as"][1].startswith("source: centimetres (detected), Y up (detected)")
+    assert slim["status"] == child["status"] == "done"
 
 
 def test_local_batch_writes_what_each_retarget_run_writes(local_run, reference):
