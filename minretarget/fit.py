@@ -28,11 +28,11 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ._jit import kernel
 from .analytic import analytic_rotations
 from .conventions import NUM_JOINTS, PARENTS
+from .nearest import build_grid, nearest
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
                          quaternion_to_matrix)
 from .validation import as_float32_array
@@ -266,13 +266,12 @@ def _clamped(step):
 
 # ----------------------------------------------------------------------------- one frame
 
-def surface_terms(posed, cloud, cloud_tree, settings):
+def surface_terms(posed, cloud, cloud_grid, settings):
     """Both directions' nearest pairs -> model index (N,), targets (N, 3), robust weights
     (N,), and the fit's cost: the mean truncated distance cloud -> model plus
     ``model_to_cloud`` times model -> cloud (metres)."""
-    distance_in, nearest_model = cKDTree(posed.points, balanced_tree=False,
-                                         compact_nodes=False).query(cloud)
-    distance_out, nearest_cloud = cloud_tree.query(posed.points)
+    distance_in, nearest_model = nearest(build_grid(posed.points), cloud)
+    distance_out, nearest_cloud = nearest(cloud_grid, posed.points)
     weights = np.concatenate([
         robust_weights(distance_in, settings.robust_width) / len(cloud),
         settings.model_to_cloud * robust_weights(distance_out, settings.robust_width)
@@ -319,12 +318,12 @@ def combined_pull(pulls):
     return total, (sum(weight * goal for weight, goal in pulls) / total if total else None)
 
 
-def fit_pose(model, rest, tpose_joints, cloud, cloud_tree, local, root, settings, pulls=()):
+def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings, pulls=()):
     """Gauss-Newton on one frame's pose.
 
     Args:
         rest, tpose_joints: the shaped model (``shaped``).
-        cloud: (P, 3) float64 points; cloud_tree: their cKDTree.
+        cloud: (P, 3) float64 points; cloud_grid: theirs (``nearest.build_grid``).
         local, root: the start, (J, 3, 3) and (3,).
         pulls: ((weight, goal joints (J, 3)), ...).
     Returns:
@@ -335,7 +334,7 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_tree, local, root, settings
     for _ in range(settings.iterations):
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights, cost = surface_terms(posed, cloud, cloud_tree, settings)
+        index, targets, weights, cost = surface_terms(posed, cloud, cloud_grid, settings)
         rows, values = np.empty((len(index), PARAMETERS), np.float32), np.empty(len(index))
         _plane_rows_kernel(index, targets, weights, posed.points, posed.normals, posed.lever,
                            posed.reach, rows, values)
@@ -374,7 +373,7 @@ def fit_shape(model, shape, frames, settings, width):
     for cloud, local, root in frames:
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights, _ = surface_terms(posed, cloud, cKDTree(cloud), settings)
+        index, targets, weights, _ = surface_terms(posed, cloud, build_grid(cloud), settings)
         jacobian = shape_jacobian(model, rotations)[index]             # (N, 3, K)
         normals = posed.normals[index]
         along = np.einsum("na,nak->nk", normals, jacobian) * np.sqrt(weights)[:, None]
@@ -389,7 +388,7 @@ def settle_shape(model, shape, frames, settings):
     pose fitted again on the current shape (no pulls), then a shape step on them all."""
     for _ in range(settings.settle_rounds):
         rest, tpose_joints = shaped(model, shape)
-        frames = [(cloud, *fit_pose(model, rest, tpose_joints, cloud, cKDTree(cloud), local,
+        frames = [(cloud, *fit_pose(model, rest, tpose_joints, cloud, build_grid(cloud), local,
                                     root, settings)[:2]) for cloud, local, root in frames]
         shape = fit_shape(model, shape, frames, settings, settings.robust_width)
     return shape
@@ -414,17 +413,17 @@ def start_fit(model, settings, cloud, reading):
     """The first frame: shape and pose in alternation, from the mean body on SKR's reading
     -> FitState, joints (J, 3)."""
     cloud, reading = subsample(cloud, settings.cloud_points, 0), np.asarray(reading, np.float64)
-    tree = cKDTree(cloud)
+    grid = build_grid(cloud)
     shape = np.zeros(len(model.points_basis))
     rest, tpose_joints = shaped(model, shape)
     local, root = local_from_joints(reading, tpose_joints), reading[0].copy()
     for width in CALIBRATION_WIDTHS:
-        local, root, _, _ = fit_pose(model, rest, tpose_joints, cloud, tree, local, root,
+        local, root, _, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
                                      settings._replace(robust_width=width),
                                      ((settings.reading_pull, reading),))
         shape = fit_shape(model, shape, [(cloud, local, root)], settings, width)
         rest, tpose_joints = shaped(model, shape)
-    local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, tree, local, root,
+    local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
                                       settings, ((settings.reading_pull, reading),))
     state = FitState(1, shape, local, root, np.stack([joints, joints]),
                      ((cloud, local, root),))
@@ -436,15 +435,15 @@ def fit_frame(model, settings, state, cloud, reading):
     from SKR's reading won."""
     t = state.frames
     cloud, reading = subsample(cloud, settings.cloud_points, t), np.asarray(reading, np.float64)
-    tree = cKDTree(cloud)
+    grid = build_grid(cloud)
     rest, tpose_joints = shaped(model, state.shape)
     before, last = state.joints
     pulls = ((settings.reading_pull, reading), (settings.motion_pull, last + 0.5 * (last - before)))
-    local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, tree, state.local,
+    local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, state.local,
                                          state.root, settings, pulls)
     reseeded = False
     if np.linalg.norm(joints - reading, axis=1).mean() > settings.reseed_distance:
-        fresh = fit_pose(model, rest, tpose_joints, cloud, tree,
+        fresh = fit_pose(model, rest, tpose_joints, cloud, grid,
                          local_from_joints(reading, tpose_joints), reading[0].copy(), settings,
                          pulls)
         if fresh[3] < cost:
@@ -456,7 +455,7 @@ def fit_frame(model, settings, state, cloud, reading):
         if t == settings.calibration_frames - 1:
             shape = settle_shape(model, shape, calibration, settings)
             rest, tpose_joints = shaped(model, shape)
-            local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, tree, local,
+            local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local,
                                               root, settings, pulls)
     elif calibration:
         calibration = ()                 # calibrated: the clouds are no longer needed

@@ -2,7 +2,7 @@
 rotations kept rotations, and fits that recover a known pose and shape."""
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
+from minretarget.nearest import build_grid
 
 from minretarget import fit
 from minretarget.conventions import NUM_JOINTS
@@ -135,7 +135,7 @@ def test_fit_pose_recovers_a_pose_from_its_own_surface(model):
     start = fit.apply_step(local, root, rotations,
                            np.random.default_rng(8).normal(scale=0.02, size=fit.PARAMETERS))
     settings = fit.FitSettings(iterations=12, reading_pull=0, motion_pull=0)
-    *_, found, cost = fit.fit_pose(model, rest, tpose, cloud, cKDTree(cloud), *start, settings)
+    *_, found, cost = fit.fit_pose(model, rest, tpose, cloud, build_grid(cloud), *start, settings)
     assert np.linalg.norm(found - joints, axis=1).mean() < 0.005
     assert cost < 0.002
 
