@@ -169,23 +169,71 @@ def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations
 
 
 @kernel
+def _plane_row(q, target, weight, posed, posed_normals, lever, reach, row, columns):
+    """One pair's weighted point-to-plane row: row . step = the change of sqrt(w) n . (x - y);
+    fills ``row`` (PARAMETERS,) where it is not zero, lists those entries in ``columns`` and
+    returns (their count, sqrt(w) n . (x - y))."""
+    s = np.sqrt(weight)
+    n = posed_normals[q]
+    count = 0
+    for a in range(3):
+        row[a] = s * n[a]
+        columns[count] = a
+        count += 1
+    for j in range(lever.shape[1]):
+        if reach[q, j] > 0.0:
+            l = lever[q, j]                            # d(n . x)/d(turn j) = lever x n
+            row[3 + 3 * j] = s * (l[1] * n[2] - l[2] * n[1])
+            row[4 + 3 * j] = s * (l[2] * n[0] - l[0] * n[2])
+            row[5 + 3 * j] = s * (l[0] * n[1] - l[1] * n[0])
+            for a in range(3):
+                columns[count] = 3 + 3 * j + a
+                count += 1
+    value = 0.0
+    for a in range(3):
+        value += n[a] * (posed[q, a] - target[a])
+    return count, s * value
+
+
+@kernel
 def _plane_rows_kernel(model_index, targets, weights, posed, posed_normals, lever, reach,
                        rows, values):
-    """Weighted point-to-plane rows of the Gauss-Newton system, one per pair (model point,
-    target): row . step = the change of n . (x - y), value = n . (x - y), both times sqrt(w)."""
+    """Every pair's row (N, PARAMETERS) and value (N,) (``_plane_row``), zeros elsewhere."""
     rows[:] = 0.0
+    columns = np.empty(rows.shape[1], np.int64)
     for i in range(model_index.shape[0]):
-        q = model_index[i]
-        s = np.sqrt(weights[i])
-        n = posed_normals[q]
-        values[i] = s * np.sum(n * (posed[q] - targets[i]))
-        rows[i, 0:3] = s * n
-        for j in range(lever.shape[1]):
-            if reach[q, j] > 0.0:
-                a = lever[q, j]                       # d(n . x)/d(turn j) = a x n
-                rows[i, 3 + 3 * j] = s * (a[1] * n[2] - a[2] * n[1])
-                rows[i, 4 + 3 * j] = s * (a[2] * n[0] - a[0] * n[2])
-                rows[i, 5 + 3 * j] = s * (a[0] * n[1] - a[1] * n[0])
+        _, values[i] = _plane_row(model_index[i], targets[i], weights[i], posed, posed_normals,
+                                  lever, reach, rows[i], columns)
+
+
+@kernel
+def _plane_normal_equations_kernel(model_index, targets, weights, posed, posed_normals, lever,
+                                   reach, hessian, gradient):
+    """The pairs' normal equations, added: hessian += sum row row^T, gradient += sum row value
+    (rows as ``_plane_row``), by 3 x 3 blocks over the joints that move each point (the
+    translation as block 0), without BLAS, whose threads cost more than they give here."""
+    blocks = hessian.shape[0] // 3
+    row = np.zeros(hessian.shape[0])
+    columns = np.empty(hessian.shape[0], np.int64)
+    moved = np.empty(blocks, np.int64)
+    for i in range(model_index.shape[0]):
+        count, value = _plane_row(model_index[i], targets[i], weights[i], posed, posed_normals,
+                                  lever, reach, row, columns)
+        for u in range(count // 3):
+            moved[u] = columns[3 * u] // 3
+        for u in range(count // 3):
+            a = 3 * moved[u]
+            for x in range(3):
+                gradient[a + x] += row[a + x] * value
+            for v in range(u, count // 3):
+                b = 3 * moved[v]
+                for x in range(3):
+                    for y in range(3):
+                        hessian[a + x, b + y] += row[a + x] * row[b + y]
+    for a in range(hessian.shape[0]):       # blocks above the diagonal, mirrored below
+        for b in range(a):
+            if a // 3 != b // 3:
+                hessian[a, b] = hessian[b, a]
 
 
 @kernel
@@ -335,11 +383,9 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
         index, targets, weights, cost = surface_terms(posed, cloud, cloud_grid, settings)
-        rows, values = np.empty((len(index), PARAMETERS), np.float32), np.empty(len(index))
-        _plane_rows_kernel(index, targets, weights, posed.points, posed.normals, posed.lever,
-                           posed.reach, rows, values)
-        hessian = (rows.T @ rows).astype(np.float64)      # float32: the product is the cost
-        gradient = rows.T.astype(np.float64) @ values
+        hessian, gradient = np.zeros((PARAMETERS, PARAMETERS)), np.zeros(PARAMETERS)
+        _plane_normal_equations_kernel(index, targets, weights, posed.points, posed.normals,
+                                       posed.lever, posed.reach, hessian, gradient)
         if pull_weight:
             extra_rows, extra_values = joint_rows(joints, pull_goal, pull_weight)
             hessian += extra_rows.T @ extra_rows

@@ -95,6 +95,22 @@ def test_plane_rows_are_the_derivative_of_the_plane_distance(model):
     np.testing.assert_allclose(rows, numeric_derivative(model, state, plane_distance), atol=2e-5)
 
 
+def test_normal_equations_are_the_rows_products(model):
+    _, rest, tpose, _, _, rotations, joints = posed_state(model, seed=11)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    rng = np.random.default_rng(12)
+    index = rng.integers(0, len(rest), 300)
+    targets = posed.points[index] + rng.normal(scale=0.02, size=(300, 3))
+    weights = rng.uniform(0.1, 1.0, 300)
+    arguments = (index, targets, weights, posed.points, posed.normals, posed.lever, posed.reach)
+    rows, values = np.empty((300, fit.PARAMETERS)), np.empty(300)
+    fit._plane_rows_kernel(*arguments, rows, values)
+    hessian, gradient = np.eye(fit.PARAMETERS), np.ones(fit.PARAMETERS)   # added to
+    fit._plane_normal_equations_kernel(*arguments, hessian, gradient)
+    np.testing.assert_allclose(hessian, np.eye(fit.PARAMETERS) + rows.T @ rows, atol=1e-12)
+    np.testing.assert_allclose(gradient, 1 + rows.T @ values, atol=1e-12)
+
+
 def test_joint_rows_are_the_derivative_of_the_joints(model):
     state = posed_state(model, seed=3)
     tpose, joints = state[2], state[6]
