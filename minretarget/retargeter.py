@@ -21,7 +21,7 @@ from .skr import mirror_averaged, regress_joints
 from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
 from .validation import as_float32_array, as_point_cloud, as_workers, check_body
-from .weights import load_weights
+from .weights import Weights, load_weights
 
 
 class Target(NamedTuple):
@@ -78,6 +78,16 @@ class Retargeter:
         fixed bone lengths, left and right kept), or None (the default) for SKR's reading.
         Only frames with a cloud are fitted (``step``, or ``step_skeleton`` given points).
         Its state is ``fit_state``, apart from ``state``."""
+        if not isinstance(weights, Weights):
+            raise TypeError(f"weights must be a minretarget.weights.Weights (load_weights(path)),"
+                            f" got {type(weights).__name__}; Retargeter.from_weights(path) "
+                            "reads a file")
+        for name, value in (("warn", warn), ("mirror_target", mirror_target),
+                            ("mirror_source", mirror_source), ("refine", refine),
+                            ("denoise", denoise), ("rest_pose", rest_pose),
+                            ("facing_check", facing_check)):
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{name} must be True or False, got {value!r}")
         self.weights = weights
         self.warn = warn
         self.workers = as_workers(workers)

@@ -202,7 +202,11 @@ def test_retargeter_hands_smrm_the_fit_of_its_readings(sample_clouds):
     assert retargeter.fit_state is None
 
 
-def test_retargeter_refuses_fit_settings_of_another_kind():
+def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
     from minretarget.retargeter import Retargeter
     with pytest.raises(TypeError, match="fit_source must be a fit.FitSettings"):
-        Retargeter(None, fit_source="yes")
+        Retargeter(tiny_weights, fit_source="yes")
+    with pytest.raises(TypeError, match="weights must be a minretarget.weights.Weights.*str"):
+        Retargeter("weights.npz")
+    with pytest.raises(TypeError, match="refine must be True or False, got 'no'"):
+        Retargeter(tiny_weights, refine="no")
