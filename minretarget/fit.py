@@ -17,9 +17,10 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    point, plus pulls of the joints towards SKR's reading and towards the last two frames'
    motion continued.
 3. Starts. A frame starts from the last frame's pose, so left and right carry over. When that
-   fit and SKR's reading disagree, the frame is also fitted from the reading's pose (the
-   analytic bone alignment of the model onto it), and the fit that meets the cloud better wins:
-   a lost track recovers, a leg never passes through empty space to follow the reading.
+   fit and SKR's reading disagree (by default: always), the frame is also fitted from the
+   reading's pose (the analytic bone alignment of the model onto it); after
+   ``race_iterations`` steps from each, the one that meets the cloud better goes on: a lost
+   track recovers, a leg never passes through empty space to follow the reading.
 
 Lengths are metres; the solver works in float64.
 """
@@ -99,6 +100,8 @@ class FitSettings(NamedTuple):
     motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
                                    # (mean over joints) is tried again from the reading
+    race_iterations: int = 4       # steps from each start before the better one goes on
+    model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
 
@@ -319,14 +322,15 @@ def surface_terms(posed, cloud, cloud_grid, settings):
     (N,), and the fit's cost: the mean truncated distance cloud -> model plus
     ``model_to_cloud`` times model -> cloud (metres)."""
     distance_in, nearest_model = nearest(build_grid(posed.points), cloud)
-    distance_out, nearest_cloud = nearest(cloud_grid, posed.points)
+    outward = np.arange(0, len(posed.points), settings.model_stride)   # model -> cloud points
+    distance_out, nearest_cloud = nearest(cloud_grid, posed.points[outward])
     weights = np.concatenate([
         robust_weights(distance_in, settings.robust_width) / len(cloud),
         settings.model_to_cloud * robust_weights(distance_out, settings.robust_width)
-        / len(posed.points)])
+        / len(outward)])
     cost = float(np.mean(np.minimum(distance_in, TRUNCATE)) + settings.model_to_cloud
                  * np.mean(np.minimum(distance_out, TRUNCATE)))
-    return (np.concatenate([nearest_model, np.arange(len(posed.points))]),
+    return (np.concatenate([nearest_model, outward]),
             np.concatenate([cloud, cloud[nearest_cloud]]), weights, cost)
 
 
@@ -485,15 +489,20 @@ def fit_frame(model, settings, state, cloud, reading):
     rest, tpose_joints = shaped(model, state.shape)
     before, last = state.joints
     pulls = ((settings.reading_pull, reading), (settings.motion_pull, last + 0.5 * (last - before)))
+    race = settings._replace(iterations=min(settings.race_iterations, settings.iterations))
     local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, state.local,
-                                         state.root, settings, pulls)
+                                         state.root, race, pulls)
     reseeded = False
     if np.linalg.norm(joints - reading, axis=1).mean() > settings.reseed_distance:
         fresh = fit_pose(model, rest, tpose_joints, cloud, grid,
-                         local_from_joints(reading, tpose_joints), reading[0].copy(), settings,
+                         local_from_joints(reading, tpose_joints), reading[0].copy(), race,
                          pulls)
         if fresh[3] < cost:
             (local, root, joints, cost), reseeded = fresh, True
+    if settings.iterations > race.iterations:          # the better start goes on
+        local, root, joints, cost = fit_pose(
+            model, rest, tpose_joints, cloud, grid, local, root,
+            settings._replace(iterations=settings.iterations - race.iterations), pulls)
     shape, calibration = state.shape, state.calibration
     if t < settings.calibration_frames:
         calibration = calibration + ((cloud, local, root),)
