@@ -5,6 +5,17 @@ import tempfile
 from pathlib import Path
 
 
+def process_umask():
+    """The process's file-creation mask, read without changing it (Linux: /proc; elsewhere
+    the usual 0o022): setting and restoring it, the only portable way, would briefly give
+    every other thread of an embedding program a mask of 0."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    return 0o022
+
+
 @contextlib.contextmanager
 def atomic_write(path):
     """Open a temporary binary file beside ``path``; on success rename it over ``path``.
@@ -19,9 +30,7 @@ def atomic_write(path):
             yield file
             file.flush()
             os.fsync(file.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)   # mkstemp makes 0600; give the usual mode
+        os.chmod(temporary, 0o666 & ~process_umask())   # mkstemp makes 0600: the usual mode
         os.replace(temporary, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -232,3 +232,17 @@ def test_missing_extra_names_the_package_and_the_install_command():
         require("surely_not_an_installed_module", "reading frobs")
     assert "reading frobs" in str(error.value)
     assert isinstance(error.value, ImportError)
+
+
+def test_atomic_write_gives_the_usual_mode_without_touching_the_umask(tmp_path, monkeypatch):
+    import os
+    from minretarget.atomic import atomic_write
+    previous = os.umask(0o027)
+    try:
+        monkeypatch.setattr(os, "umask", lambda *_: pytest.fail("atomic_write set the umask"))
+        with atomic_write(tmp_path / "out.bin") as file:
+            file.write(b"x")
+    finally:
+        monkeypatch.undo()
+        os.umask(previous)
+    assert (tmp_path / "out.bin").stat().st_mode & 0o777 == 0o640
