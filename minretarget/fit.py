@@ -100,7 +100,7 @@ class FitSettings(NamedTuple):
     motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
                                    # (mean over joints) is tried again from the reading
-    race_iterations: int = 4       # steps from each start before the better one goes on
+    race_iterations: int = 2       # steps from each start before the better one goes on
     model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
