@@ -1,7 +1,7 @@
 """Accuracy of the runtime on the test benchmark (../shared/DESIGN.md, "Accuracy protocol").
 
-    python benchmarks/accuracy.py [--quick | --validation | --dances] [--rows ROW ...] [--weights FILE]
-                                  [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
+    python benchmarks/accuracy.py [--quick | --validation | --dances] [--rows ROW ...]
+                                  [--weights FILE] [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
                                   [--compare OTHER.json]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]
 
@@ -190,14 +190,15 @@ def run_sequence(weights, sequence, wanted=ROWS):
     no_facing_check = Retargeter(weights, facing_check=False)
     raw = Retargeter(weights, smoothing=None, denoise=False)
     mirrored = Retargeter(weights, mirror_source=True)
-    fitted = Retargeter(weights, fit_source=FitSettings(), smoothing=None, denoise=False)
+    fitted = (Retargeter(weights, fit_source=FitSettings(), smoothing=None, denoise=False)
+              if set(FIT_ROWS) & set(wanted) else None)
     oracle_rig = Retargeter(weights)
     oracle_rig_raw = Retargeter(weights, smoothing=None, denoise=False)
     leashed = {row: Retargeter(weights, foot_lock=FootLock(max_offset=leash))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
                                  (no_facing_check, rig), (raw, rig), (mirrored, rig),
-                                 (fitted, rig),
+                                 *(((fitted, rig),) if fitted else ()),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
@@ -221,7 +222,6 @@ def run_sequence(weights, sequence, wanted=ROWS):
 
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
-    fitted.reset()
     fitted_frames = functools.cache(lambda: [fitted.step_skeleton(joints, cloud)
                                              for joints, cloud in zip(raw_joints, clouds)])
     # The source skeleton SMRM saw, for the rows that keep it.
@@ -255,17 +255,21 @@ def run_sequence(weights, sequence, wanted=ROWS):
 
 
 def skeleton_figures(rows, sources, sequence):
-    """Per row: the source skeleton's error (``metrics.joint_errors``, where the row keeps
-    it), the frames with crossed feet against the truth's, and the skating steps
-    ([count, steps], ``metrics.skating_steps``); the ground truth's skating too."""
-    truth = sequence["target_joints"]
+    """Per row: the frames whose result has crossed feet against the target truth's
+    (``metrics.crossed_feet``) and the skating steps ([count, steps],
+    ``metrics.skating_steps``); where the row keeps its source skeleton, that skeleton's error
+    (``metrics.joint_errors``) and crossed feet against the true source joints; the ground
+    truth's skating too."""
+    truth, source_truth = sequence["target_joints"], sequence["source_joints"]
     out = {}
     for name, (joints, _) in rows.items():
         skating = skating_steps(joints)
         out[name] = {"crossed_legs": int(crossed_feet(joints, truth).sum()),
                      "skating": [int(skating.sum()), int(skating.size)]}
         if name in sources:
-            out[name]["source_error"] = joint_errors(sources[name], sequence["source_joints"])
+            out[name]["source_error"] = joint_errors(sources[name], source_truth)
+            out[name]["source_crossed_legs"] = int(crossed_feet(sources[name],
+                                                                source_truth).sum())
     skating = skating_steps(truth)
     out["ground truth"] = {"skating": [int(skating.sum()), int(skating.size)]}
     return out
@@ -367,8 +371,9 @@ def markdown_table(rows, title):
 
 
 def skeleton_summary(results):
-    """Per row over all sequences: source_error (frame-weighted, metres, where kept; with
-    source_error_legs), crossed_legs (frames, summed) and skating_ratio (pooled steps)."""
+    """Per row over all sequences: crossed_legs (frames of the result, summed), skating_ratio
+    (pooled steps); where kept, source_error and source_error_legs (frame-weighted, metres)
+    and source_crossed_legs (frames of the source skeleton, summed)."""
     total = sum(r["frames"] for r in results)
     out = {}
     for row in results[0]["skeleton"]:
@@ -377,6 +382,8 @@ def skeleton_summary(results):
         out[row] = {"skating_ratio": float(skating[0] / max(1, skating[1]))}
         if row != "ground truth":
             out[row]["crossed_legs"] = int(sum(f["crossed_legs"] for f in figures))
+        if all("source_crossed_legs" in f for f in figures):
+            out[row]["source_crossed_legs"] = int(sum(f["source_crossed_legs"] for f in figures))
         if all("source_error" in f for f in figures):
             for key, group in (("source_error", "all"), ("source_error_legs", "legs")):
                 out[row][key] = sum(f["source_error"][group] * r["frames"]
@@ -385,17 +392,20 @@ def skeleton_summary(results):
 
 
 def skeleton_table(figures, toes):
-    """Markdown: each row's source skeleton error, crossed legs, skating ratio, toe speed."""
-    lines = ["**Source skeleton and feet** (source error: the skeleton SMRM saw against the "
-             "true source joints, m; crossed legs: frames; skating: the ratio of low, fast "
-             "foot steps; toes: m/s on the truth's contacts)", "",
-             "| row | source error | legs | crossed legs | skating ratio | toes |",
-             "|---|---|---|---|---|---|"]
+    """Markdown: each row's source skeleton error and crossed legs, the result's crossed legs,
+    skating ratio and toe speed."""
+    lines = ["**Skeletons and feet** (source: the skeleton SMRM saw against the true source "
+             "joints, error in m, crossed legs in frames; result: the target's crossed legs "
+             "against its truth, in frames; skating: the ratio of low, fast foot steps; toes: "
+             "m/s on the truth's contacts)", "",
+             "| row | source error | source legs | source crossed legs | crossed legs | "
+             "skating ratio | toes |", "|---|---|---|---|---|---|---|"]
     for row, f in figures.items():
         error = (f"{f['source_error']:.4f} | {f['source_error_legs']:.4f}"
                  if "source_error" in f else " | ")
-        lines.append(f"| {row} | {error} | {f.get('crossed_legs', '')} | "
-                     f"{f['skating_ratio']:.4f} | {toes[row]:.3f} |")
+        lines.append(f"| {row} | {error} | {f.get('source_crossed_legs', '')} | "
+                     f"{f.get('crossed_legs', '')} | {f['skating_ratio']:.4f} | "
+                     f"{toes[row]:.3f} |")
     return "\n".join(lines)
 
 
@@ -444,7 +454,8 @@ def main(argv=None):
                         help="score 16 dance and martial-arts trials of the training split on "
                              "held-out validation bodies instead (training.data.datasets."
                              "dance_sequences: 6,954 frames): motion validation lacks")
-    parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS, default=list(ROWS),
+    parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS,
+                        default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "
                         "but the foot-leash rows; model always)")
     parser.add_argument("--json", help="write the results as JSON here")

@@ -1,19 +1,20 @@
 """Atomic file writes: a reader sees the old file or the complete new one, never a part."""
 import contextlib
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 
-def process_umask():
-    """The process's file-creation mask, read without changing it (Linux: /proc; elsewhere
-    the usual 0o022): setting and restoring it, the only portable way, would briefly give
-    every other thread of an embedding program a mask of 0."""
-    with contextlib.suppress(OSError, ValueError):
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    return 0o022
+def _create_beside(path):
+    """A new, empty file beside ``path`` with a random name -> (descriptor, its path). Made
+    with mode 0o666, so the kernel applies the process's umask (tempfile.mkstemp makes 0600,
+    and reading the umask means setting it, for every thread of an embedding program)."""
+    while True:
+        temporary = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+        try:
+            return os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), temporary
+        except FileExistsError:
+            continue
 
 
 @contextlib.contextmanager
@@ -24,13 +25,12 @@ def atomic_write(path):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    handle, temporary = _create_beside(path)
     try:
         with os.fdopen(handle, "wb") as file:
             yield file
             file.flush()
             os.fsync(file.fileno())
-        os.chmod(temporary, 0o666 & ~process_umask())   # mkstemp makes 0600: the usual mode
         os.replace(temporary, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

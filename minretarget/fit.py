@@ -8,14 +8,16 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
 
 1. Shape. The first ``calibration_frames`` frames calibrate the shape coefficients (for a
    fixed pose the posed points are linear in them: one Gauss-Newton step on every frame kept
-   so far, after each frame's pose); then they are kept, so bone lengths are constant over a
-   stream by construction.
+   so far, after each frame's pose, then ``settle_rounds`` rounds of every kept frame's pose
+   and the shape after the last); then they are kept, so bone lengths are constant over the
+   rest of the stream. The calibration is the fit's slow part: its frames cost more each
+   (the last one seconds), the frames after it 10-20 ms.
 2. Pose. ``iterations`` Gauss-Newton steps (damped, each joint's turn capped) on the root
    translation and one world-frame rotation vector per joint (which turns the joint's subtree
    about it), minimising robust (Geman-McClure) point-to-plane distances from each cloud
    point to its nearest model point and, weaker, from each model point to its nearest cloud
-   point, plus pulls of the joints towards SKR's reading and towards the last two frames'
-   motion continued.
+   point, plus pulls of the joints towards SKR's reading and towards the last frame's joints
+   moved on by half their last step (the motion continued, damped).
 3. Starts. A frame starts from the last frame's pose, so left and right carry over. When that
    fit and SKR's reading disagree (by default: always), the frame is also fitted from the
    reading's pose (the analytic bone alignment of the model onto it); after
@@ -43,8 +45,8 @@ _PARENTS = np.asarray(PARENTS, dtype=np.int64)
 PARAMETERS = 3 + 3 * NUM_JOINTS      # root translation, then one rotation vector per joint
 MAX_TURN, MAX_SHIFT = 0.3, 0.1       # radians per joint, metres: the largest step taken
 TRUNCATE = 0.05                      # metres: the farthest a point counts in a fit's cost
-# Robust widths (metres) of the first frame's rounds and of the calibration frames' shape
-# steps: wide first, so that a body far from the mean is pulled in before it is fitted.
+# Robust widths (metres) of the first frame's rounds of pose and shape: wide first, so that a
+# body far from the mean is pulled in before it is fitted.
 CALIBRATION_WIDTHS = (0.2, 0.1, 0.07, 0.05, 0.03, 0.03, 0.03, 0.03)
 
 
@@ -106,6 +108,32 @@ class FitSettings(NamedTuple):
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
 
 
+def check_fit_settings(settings):
+    """``settings`` if it is a ``FitSettings`` of sensible values, else a TypeError or a
+    ValueError naming the field; None passes (no fit)."""
+    if settings is None:
+        return None
+    if not isinstance(settings, FitSettings):
+        raise TypeError(f"fit_source must be a fit.FitSettings or None, got "
+                        f"{type(settings).__name__}")
+    for name in ("iterations", "cloud_points", "race_iterations", "model_stride",
+                 "calibration_frames"):
+        value = getattr(settings, name)
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
+    if not isinstance(settings.settle_rounds, (int, np.integer)) or settings.settle_rounds < 0:
+        raise ValueError(f"FitSettings.settle_rounds must be an integer >= 0, got "
+                         f"{settings.settle_rounds!r}")
+    for name in ("robust_width", "model_to_cloud", "reading_pull", "motion_pull",
+                 "reseed_distance"):
+        value = getattr(settings, name)
+        positive = name == "robust_width"
+        if not np.isfinite(value) or value < 0 or (positive and value == 0):
+            raise ValueError(f"FitSettings.{name} must be a finite number "
+                             f"{'> 0' if positive else '>= 0'}, got {value!r}")
+    return settings
+
+
 class FitState(NamedTuple):
     """What the fit carries from frame to frame (arrays float64)."""
     frames: int                 # frames fitted so far
@@ -113,7 +141,7 @@ class FitState(NamedTuple):
     local: np.ndarray           # (J, 3, 3) the last frame's local rotations
     root: np.ndarray            # (3,) its pelvis position, metres
     joints: np.ndarray          # (2, J, 3) the last two frames' joints (older first)
-    calibration: tuple          # ((cloud (P, 3), local, root), ...) of the calibration frames
+    calibration: tuple          # ((cloud (P, 3), its grid, local, root), ...), calibrating
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -199,22 +227,12 @@ def _plane_row(q, target, weight, posed, posed_normals, lever, reach, row, colum
 
 
 @kernel
-def _plane_rows_kernel(model_index, targets, weights, posed, posed_normals, lever, reach,
-                       rows, values):
-    """Every pair's row (N, PARAMETERS) and value (N,) (``_plane_row``), zeros elsewhere."""
-    rows[:] = 0.0
-    columns = np.empty(rows.shape[1], np.int64)
-    for i in range(model_index.shape[0]):
-        _, values[i] = _plane_row(model_index[i], targets[i], weights[i], posed, posed_normals,
-                                  lever, reach, rows[i], columns)
-
-
-@kernel
 def _plane_normal_equations_kernel(model_index, targets, weights, posed, posed_normals, lever,
                                    reach, hessian, gradient):
-    """The pairs' normal equations, added: hessian += sum row row^T, gradient += sum row value
-    (rows as ``_plane_row``), by 3 x 3 blocks over the joints that move each point (the
-    translation as block 0), without BLAS, whose threads cost more than they give here."""
+    """The pairs' normal equations, added to a symmetric ``hessian``: hessian += sum row
+    row^T, gradient += sum row value (rows as ``_plane_row``), by 3 x 3 blocks over the joints
+    that move each point (the translation as block 0): the upper blocks are summed, then
+    copied below. Not a BLAS product: at this size BLAS's threads cost more than they give."""
     blocks = hessian.shape[0] // 3
     row = np.zeros(hessian.shape[0])
     columns = np.empty(hessian.shape[0], np.int64)
@@ -379,8 +397,9 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         local, root: the start, (J, 3, 3) and (3,).
         pulls: ((weight, goal joints (J, 3)), ...).
     Returns:
-        local, root, joints (J, 3), cost: the mean truncated distance both ways (metres),
-        measured before the last step (which it only refines).
+        local, root, joints (J, 3), cost: the mean truncated distance cloud -> model plus
+        ``model_to_cloud`` times model -> cloud (metres, ``surface_terms``), measured before
+        the last step (which only refines it).
     """
     pull_weight, pull_goal = combined_pull(pulls)
     for _ in range(settings.iterations):
@@ -414,16 +433,17 @@ def shape_jacobian(model, rotations):
 
 
 def fit_shape(model, shape, frames, settings, width):
-    """One Gauss-Newton step on the shape coefficients over frames ((cloud, local, root), ...)
-    at robust width ``width``; a faint ridge keeps unobserved coefficients near the mean."""
+    """One Gauss-Newton step on the shape coefficients over frames ((cloud, its grid, local,
+    root), ...) at robust width ``width``; a faint ridge keeps unobserved coefficients near
+    the mean."""
     hessian = 1e-7 * np.eye(len(shape))
     gradient = 1e-7 * shape
     rest, tpose_joints = shaped(model, shape)
     settings = settings._replace(robust_width=width)
-    for cloud, local, root in frames:
+    for cloud, grid, local, root in frames:
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights, _ = surface_terms(posed, cloud, build_grid(cloud), settings)
+        index, targets, weights, _ = surface_terms(posed, cloud, grid, settings)
         jacobian = shape_jacobian(model, rotations)[index]             # (N, 3, K)
         normals = posed.normals[index]
         along = np.einsum("na,nak->nk", normals, jacobian) * np.sqrt(weights)[:, None]
@@ -438,8 +458,8 @@ def settle_shape(model, shape, frames, settings):
     pose fitted again on the current shape (no pulls), then a shape step on them all."""
     for _ in range(settings.settle_rounds):
         rest, tpose_joints = shaped(model, shape)
-        frames = [(cloud, *fit_pose(model, rest, tpose_joints, cloud, build_grid(cloud), local,
-                                    root, settings)[:2]) for cloud, local, root in frames]
+        frames = [(cloud, grid, *fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
+                                          settings)[:2]) for cloud, grid, local, root in frames]
         shape = fit_shape(model, shape, frames, settings, settings.robust_width)
     return shape
 
@@ -471,12 +491,12 @@ def start_fit(model, settings, cloud, reading):
         local, root, _, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
                                      settings._replace(robust_width=width),
                                      ((settings.reading_pull, reading),))
-        shape = fit_shape(model, shape, [(cloud, local, root)], settings, width)
+        shape = fit_shape(model, shape, [(cloud, grid, local, root)], settings, width)
         rest, tpose_joints = shaped(model, shape)
     local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
                                       settings, ((settings.reading_pull, reading),))
     state = FitState(1, shape, local, root, np.stack([joints, joints]),
-                     ((cloud, local, root),))
+                     ((cloud, grid, local, root),))
     return state, joints
 
 
@@ -488,7 +508,8 @@ def fit_frame(model, settings, state, cloud, reading):
     grid = build_grid(cloud)
     rest, tpose_joints = shaped(model, state.shape)
     before, last = state.joints
-    pulls = ((settings.reading_pull, reading), (settings.motion_pull, last + 0.5 * (last - before)))
+    pulls = ((settings.reading_pull, reading),
+             (settings.motion_pull, last + 0.5 * (last - before)))
     race = settings._replace(iterations=min(settings.race_iterations, settings.iterations))
     local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, state.local,
                                          state.root, race, pulls)
@@ -505,7 +526,7 @@ def fit_frame(model, settings, state, cloud, reading):
             settings._replace(iterations=settings.iterations - race.iterations), pulls)
     shape, calibration = state.shape, state.calibration
     if t < settings.calibration_frames:
-        calibration = calibration + ((cloud, local, root),)
+        calibration = calibration + ((cloud, grid, local, root),)
         shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
         if t == settings.calibration_frames - 1:
             shape = settle_shape(model, shape, calibration, settings)

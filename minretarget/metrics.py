@@ -404,6 +404,15 @@ JOINT_GROUPS = {
 }
 
 
+def _same_shape(joints, truth):
+    """Both as float64 (T, J, 3) sequences; ValueError unless their shapes are equal."""
+    joints = _as_float64(joints, "joints", sequence=True)
+    truth = _as_float64(truth, "truth", sequence=True)
+    if joints.shape != truth.shape:
+        raise ValueError(f"joints {joints.shape} and truth {truth.shape} must have one shape")
+    return joints, truth
+
+
 def joint_errors(joints, truth):
     """Mean joint position error of a skeleton sequence, all joints and per ``JOINT_GROUPS``.
 
@@ -412,8 +421,8 @@ def joint_errors(joints, truth):
     Returns:
         dict: "all", "torso", "legs", "arms" -> float, metres (no alignment).
     """
-    errors = np.linalg.norm(_as_float64(joints, "joints", sequence=True)
-                            - _as_float64(truth, "truth", sequence=True), axis=-1)    # (T, J)
+    joints, truth = _same_shape(joints, truth)
+    errors = np.linalg.norm(joints - truth, axis=-1)                                   # (T, J)
     return {"all": float(errors.mean()), **{
         group: float(errors[:, [JOINT_INDEX[name] for name in names]].mean())
         for group, names in JOINT_GROUPS.items()}}
@@ -438,21 +447,23 @@ def crossed_feet(joints, truth, margin=0.05):
         ankles = (skeleton[:, JOINT_INDEX["left_ankle"]]
                   - skeleton[:, JOINT_INDEX["right_ankle"]])
         return np.einsum("ta,ta->t", ankles, across)
-    ours = side(_as_float64(joints, "joints", sequence=True))
-    theirs = side(_as_float64(truth, "truth", sequence=True))
+    joints, truth = _same_shape(joints, truth)
+    ours, theirs = side(joints), side(truth)
     return (np.sign(ours) != np.sign(theirs)) & (np.abs(theirs) >= margin)
 
 
 def skating_steps(joints, height=0.05, speed=0.5, window=5, fps=FPS, feet=FOOT_JOINTS):
     """The common skating measure: steps t -> t+1 where a foot is low in both frames (at most
     ``height`` above its own lowest height over the sequence) while its horizontal speed,
-    averaged over ``window`` steps centred on it, exceeds ``speed`` (m/s).
+    averaged over ``window`` (odd) steps centred on it, exceeds ``speed`` (m/s).
 
     Args:
         joints: (T, J, 3) joints, metres, +Y up, T >= 2.
     Returns:
         (T - 1, F) bool; its mean is the skating ratio.
     """
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be an odd number of steps, got {window}")
     low = foot_contacts(joints, height, feet)                               # (T - 1, F)
     speeds = foot_speeds(joints, fps, feet)                                 # (T - 1, F)
     kernel = np.ones(window) / window

@@ -28,11 +28,13 @@ class Grid(NamedTuple):
 
 
 def build_grid(points, cell=None):
-    """Sort finite points (N, 3), N >= 1, into cells of ``cell`` metres (default: about two points
+    """Sort points (N, 3), N >= 1, finite, into cells of ``cell`` metres (default: about two points
     a cell for a body's surface, from the points' spread) -> Grid."""
     points = np.ascontiguousarray(points, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or not len(points):
         raise ValueError(f"points must have shape (N, 3) with N >= 1, got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("points must be finite")
     low, high = points.min(axis=0), points.max(axis=0)
     if cell is None:     # a surface of extent L holds ~N points in ~(L / cell)^2 cells
         cell = float(np.sqrt(np.sum((high - low) ** 2) / len(points)))
@@ -49,6 +51,8 @@ def build_grid(points, cell=None):
 def nearest(grid, queries):
     """For each query (M, 3), the nearest grid point: distances (M,) float64, indices (M,)."""
     queries = np.ascontiguousarray(queries, np.float64)
+    if queries.ndim != 2 or queries.shape[1] != 3 or not np.isfinite(queries).all():
+        raise ValueError(f"queries must be finite, of shape (M, 3), got {queries.shape}")
     distances, indices = np.empty(len(queries)), np.empty(len(queries), np.int64)
     _nearest_kernel(grid.points, grid.origin, grid.cell, grid.dims, grid.order, grid.starts,
                     queries, distances, indices)

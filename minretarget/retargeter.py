@@ -11,7 +11,7 @@ import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
-from .fit import FitSettings, body_model, fit_frame, start_fit
+from .fit import body_model, check_fit_settings, fit_frame, start_fit
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
@@ -99,10 +99,7 @@ class Retargeter:
         self.denoise = bool(denoise)
         self.rest_pose = bool(rest_pose)
         self.facing_check = bool(facing_check)
-        if fit_source is not None and not isinstance(fit_source, FitSettings):
-            raise TypeError(f"fit_source must be a fit.FitSettings or None, got "
-                            f"{type(fit_source).__name__}")
-        self.fit_source = fit_source
+        self.fit_source = check_fit_settings(fit_source)
         self.target = None
         self._state = None
         self.fit_state = None
@@ -177,13 +174,17 @@ class Retargeter:
         """The recurrent state after the frames seen so far (``smrm.MotionState``), or None
         at a stream's start. Save it to continue the stream later in another process: set
         it back, on a retargeter with the same weights and target, and the next frames come
-        out exactly as if the stream had never stopped."""
+        out exactly as if the stream had never stopped. With ``fit_source`` on, the fit's
+        state is apart (``fit_state``, a ``fit.FitState`` held in memory, not in checkpoint
+        files yet): set it back too; setting ``state`` to None forgets it as well."""
         return self._state
 
     @state.setter
     def state(self, state):
         self._state = None if state is None else check_state(self.weights.smrm, state,
                                                              self.denoiser)
+        if state is None:
+            self.fit_state = None
 
     @property
     def denoiser(self):

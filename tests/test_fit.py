@@ -42,17 +42,10 @@ def test_shipped_model_shapes_and_weights(model):
 
 def test_forward_matches_twin(model):
     _, _, tpose, local, root, rotations, joints = posed_state(model)
-    quaternions = np.stack([twins_quaternion(r) for r in local])
+    quaternions = np.stack([twins._matrix_to_quaternion(r) for r in local])
     twin_joints, twin_rotations = twins.forward_kinematics(quaternions, root, tpose)
     np.testing.assert_allclose(joints, twin_joints, atol=1e-6)
     np.testing.assert_allclose(rotations, twin_rotations, atol=1e-6)
-
-
-def twins_quaternion(matrix):
-    """A rotation matrix -> (w, x, y, z), by the trace formula (rotations well away from pi)."""
-    w = np.sqrt(1 + np.trace(matrix)) / 2
-    return np.array([w, (matrix[2, 1] - matrix[1, 2]) / (4 * w),
-                     (matrix[0, 2] - matrix[2, 0]) / (4 * w), (matrix[1, 0] - matrix[0, 1]) / (4 * w)])
 
 
 def test_pose_model_matches_twin(model):
@@ -60,6 +53,17 @@ def test_pose_model_matches_twin(model):
     posed = fit.pose_model(model, rest, tpose, rotations, joints)
     for got, want in zip(posed, twins.body_model_pose(model, rest, tpose, rotations, joints)):
         np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def plane_rows(arguments):
+    """Every pair's row and value, by ``fit._plane_row`` (the kernels' own)."""
+    index = arguments[0]
+    rows, values = np.zeros((len(index), fit.PARAMETERS)), np.empty(len(index))
+    columns = np.empty(fit.PARAMETERS, np.int64)
+    for i, q in enumerate(index):
+        _, values[i] = fit._plane_row(q, arguments[1][i], arguments[2][i], *arguments[3:],
+                                      rows[i], columns)
+    return rows, values
 
 
 def numeric_derivative(model, state, measure, eps=1e-6):
@@ -82,9 +86,8 @@ def test_plane_rows_are_the_derivative_of_the_plane_distance(model):
     index = rng.integers(0, len(rest), 40)
     targets = posed.points[index] + rng.normal(scale=0.01, size=(40, 3))
     weights = rng.uniform(0.5, 2.0, 40)
-    rows, values = np.empty((40, fit.PARAMETERS)), np.empty(40)
-    fit._plane_rows_kernel(index, targets, weights, posed.points, posed.normals, posed.lever,
-                           posed.reach, rows, values)
+    rows, values = plane_rows((index, targets, weights, posed.points, posed.normals,
+                               posed.lever, posed.reach))
     normals = posed.normals[index]
 
     def plane_distance(local, root):
@@ -103,11 +106,12 @@ def test_normal_equations_are_the_rows_products(model):
     targets = posed.points[index] + rng.normal(scale=0.02, size=(300, 3))
     weights = rng.uniform(0.1, 1.0, 300)
     arguments = (index, targets, weights, posed.points, posed.normals, posed.lever, posed.reach)
-    rows, values = np.empty((300, fit.PARAMETERS)), np.empty(300)
-    fit._plane_rows_kernel(*arguments, rows, values)
-    hessian, gradient = np.eye(fit.PARAMETERS), np.ones(fit.PARAMETERS)   # added to
+    rows, values = plane_rows(arguments)
+    start = rng.normal(size=(fit.PARAMETERS, fit.PARAMETERS))
+    start = start + start.T                                   # any symmetric matrix, added to
+    hessian, gradient = start.copy(), np.ones(fit.PARAMETERS)
     fit._plane_normal_equations_kernel(*arguments, hessian, gradient)
-    np.testing.assert_allclose(hessian, np.eye(fit.PARAMETERS) + rows.T @ rows, atol=1e-12)
+    np.testing.assert_allclose(hessian, start + rows.T @ rows, atol=1e-12)
     np.testing.assert_allclose(gradient, 1 + rows.T @ values, atol=1e-12)
 
 
@@ -141,7 +145,8 @@ def test_apply_step_keeps_rotations_and_zero_is_no_step(model):
     np.testing.assert_array_equal(same_root, root)
     step = np.random.default_rng(6).normal(scale=0.5, size=fit.PARAMETERS)
     moved, _ = fit.apply_step(local, root, rotations, step)
-    np.testing.assert_allclose(moved @ moved.transpose(0, 2, 1), np.broadcast_to(np.eye(3), moved.shape), atol=1e-12)
+    np.testing.assert_allclose(moved @ moved.transpose(0, 2, 1),
+                               np.broadcast_to(np.eye(3), moved.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(moved), 1, atol=1e-12)
 
 
@@ -210,3 +215,27 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
         Retargeter("weights.npz")
     with pytest.raises(TypeError, match="refine must be True or False, got 'no'"):
         Retargeter(tiny_weights, refine="no")
+    for field, value in (("iterations", 0), ("model_stride", 0), ("robust_width", 0.0),
+                         ("reading_pull", -1.0), ("settle_rounds", -1)):
+        with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
+            Retargeter(tiny_weights, fit_source=fit.FitSettings()._replace(**{field: value}))
+
+
+def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):
+    from minretarget.retargeter import Retargeter
+    from minretarget.weights import load_weights
+    clouds, target = sample_clouds
+    settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
+    first, second = (Retargeter(load_weights(), smoothing=None, denoise=False, foot_lock=None,
+                                fit_source=settings) for _ in range(2))
+    for retargeter in (first, second):
+        retargeter.set_target(target)
+    for points in clouds[:3]:
+        first.step(points)
+    second.state, second.fit_state = first.state, first.fit_state
+    np.testing.assert_array_equal(second.step(clouds[3]).joints, first.step(clouds[3]).joints)
+    second.state = None
+    assert second.fit_state is None
+    # without a cloud there is nothing to fit: the skeleton given is handed on
+    given = first.skeleton(clouds[4])
+    np.testing.assert_array_equal(second.step_skeleton(given).source_joints, given)

@@ -466,6 +466,16 @@ def test_skating_steps_by_hand():
     assert not skating_steps(slow).any()
 
 
+def test_skeleton_measures_refuse_what_does_not_pair():
+    joints = _standing(10)
+    with pytest.raises(ValueError, match="one shape"):
+        joint_errors(joints[:1], joints)
+    with pytest.raises(ValueError, match="one shape"):
+        crossed_feet(joints, joints[:, :21])
+    with pytest.raises(ValueError, match="odd"):
+        skating_steps(joints, window=4)
+
+
 def test_joint_errors_by_group():
     truth = np.zeros((2, 22, 3))
     joints = truth.copy()

@@ -19,15 +19,22 @@ def test_grid_finds_the_trees_nearest_distances(seed):
                                atol=1e-12)
 
 
-def test_an_outlier_does_not_blow_up_the_grid():
-    points = np.concatenate([np.random.default_rng(0).normal(size=(500, 3)) * 0.3,
-                             [[1e4, 0.0, 0.0]]])
-    grid = build_grid(points)
+@pytest.mark.parametrize("seed", range(3))
+def test_an_outlier_neither_blows_up_the_grid_nor_misleads_it(seed):
+    rng = np.random.default_rng(seed)
+    points = np.concatenate([rng.normal(size=(500, 3)) * 0.3, [[1e4, 0.0, 0.0]]])
+    grid = build_grid(points)                                 # the default cell
     assert len(grid.starts) <= 64 * len(points) + 2
-    distances, _ = nearest(grid, points)
-    np.testing.assert_array_equal(distances, 0.0)
+    queries = np.concatenate([rng.normal(size=(200, 3)) * 0.5,     # inside, between points
+                              rng.normal(size=(50, 3)) * 50.0])    # off the grid
+    distances, _ = nearest(grid, queries)
+    np.testing.assert_allclose(distances, cKDTree(points).query(queries)[0], atol=1e-9)
 
 
 def test_bad_points_are_refused():
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
         build_grid(np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        build_grid([[0.0, np.nan, 0.0]])
+    with pytest.raises(ValueError, match="finite"):
+        nearest(build_grid(np.zeros((1, 3))), [[np.inf, 0.0, 0.0]])

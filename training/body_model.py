@@ -25,9 +25,10 @@ import numpy as np
 
 from minretarget.atomic import atomic_write
 from minretarget.fit import BodyModel
+from minretarget.formats.glb import top_weights, vertex_normals
+from minretarget.sampling import points_from_barycentric, sample_surface
 
 from .data.bodies import body_from_seed, sampled_body_seeds
-from .data.sampling import points_from_barycentric, sample_surface
 
 DEFAULT_BODIES = 400
 DEFAULT_POINTS = 1536
@@ -35,24 +36,12 @@ DEFAULT_COMPONENTS = 16
 BONES_PER_POINT = 6            # anny's blended weights touch at most 6 joints per point
 
 
-def vertex_normals(vertices, faces):
-    """(V, 3) vertices, (F, 3) faces -> (V, 3) unit normals, area-weighted over the triangles."""
-    corners = vertices[faces]                                               # (F, 3, 3)
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(vertices)
-    for corner in range(3):
-        np.add.at(normals, faces[:, corner], face_normals)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-
-
 def sparse_weights(weights, count):
-    """(Q, J) rows summing to 1 -> the ``count`` largest per row as (Q, count) joint
-    indices and weights (renormalised; ValueError if a row had more non-zero weights)."""
+    """(Q, J) rows summing to 1 -> the ``count`` largest per row as (Q, count) joint indices
+    and weights (``glb.top_weights``); ValueError if a row had more non-zero weights."""
     if (np.count_nonzero(weights > 0, axis=1) > count).any():
         raise ValueError(f"a point has more than {count} non-zero skinning weights")
-    index = np.argsort(-weights, axis=1)[:, :count]
-    kept = np.take_along_axis(weights, index, axis=1)
-    return np.where(kept > 0, index, 0), kept / kept.sum(axis=1, keepdims=True)
+    return top_weights(weights, count)
 
 
 def build_body_model(bodies, points=DEFAULT_POINTS, components=DEFAULT_COMPONENTS, seed=0):
