@@ -5,6 +5,7 @@
     for points in frames:                             # (P, 3) each, any P >= 64, any order
         frame = retargeter.step(points)               # frame.vertices (V, 3) in target order
 """
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -101,8 +102,7 @@ class Retargeter:
         self.facing_check = bool(facing_check)
         self.fit_source = check_fit_settings(fit_source)
         self.target = None
-        self._state = None
-        self.fit_state = None
+        self.reset()
 
     @classmethod
     def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
@@ -149,9 +149,21 @@ class Retargeter:
         self.reset()
 
     def reset(self):
-        """Forget the motion seen so far (the target stays)."""
+        """Forget the motion seen so far (the target stays). The calling thread owns the new
+        stream: a stream carries state from frame to frame, so frames from two threads would
+        mix two motions into one; another thread's frame is refused (``_check_owner``) until
+        it calls ``reset`` (or ``set_target``) itself."""
         self._state = None
         self.fit_state = None
+        self._owner = threading.get_ident()
+
+    def _check_owner(self):
+        """RuntimeError unless the calling thread owns the stream (the one that last called
+        ``reset``, ``set_target`` or set ``state``)."""
+        if self._owner != threading.get_ident():
+            raise RuntimeError("this Retargeter's stream belongs to another thread (the one "
+                               "that last called reset, set_target or set its state); use one "
+                               "Retargeter per thread, or call reset() in this one first")
 
     def warm_up(self, skeleton=False):
         """Compile every kernel that a stream of clouds (``skeleton``: of joints) uses with
@@ -183,6 +195,7 @@ class Retargeter:
     def state(self, state):
         self._state = None if state is None else check_state(self.weights.smrm, state,
                                                              self.denoiser)
+        self._owner = threading.get_ident()
         if state is None:
             self.fit_state = None
 
@@ -259,6 +272,7 @@ class Retargeter:
     def _retarget_step(self, source_joints, points=None):
         """The facing check (given the frame's ``points``), smoothing, denoising, SMRM then
         the foot contacts on one frame's source skeleton -> rotations, root."""
+        self._check_owner()
         if self.facing_check and points is not None:
             reference, away = ((np.nan, 0) if self._state is None else
                                (self._state.facing_reference, self._state.facing_away_frames))

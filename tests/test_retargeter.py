@@ -297,3 +297,30 @@ def test_warm_up_loads_every_kernel_a_stream_uses(settings, skeleton):
         env={**os.environ, "PYTHONPATH": f"{tests.parent}{os.pathsep}{tests}"})
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout) == []
+
+
+def test_a_stream_belongs_to_the_thread_that_started_it(tiny_weights):
+    """Frames from a second thread are refused (they would mix two motions into one stream)
+    until that thread starts its own stream with reset()."""
+    import threading
+    retargeter = Retargeter(tiny_weights, warn=False)
+    retargeter.set_target(np.random.default_rng(0).normal(size=(200, 3)))
+    cloud = np.random.default_rng(1).normal(size=(100, 3))
+    retargeter.step(cloud)
+    outcome = {}
+
+    def other_thread():
+        try:
+            retargeter.step(cloud)
+        except RuntimeError as error:
+            outcome["refused"] = str(error)
+        retargeter.reset()
+        outcome["frame"] = retargeter.step(cloud)
+
+    worker = threading.Thread(target=other_thread)
+    worker.start()
+    worker.join()
+    assert "belongs to another thread" in outcome["refused"]
+    assert outcome["frame"].vertices.shape == (200, 3)
+    with pytest.raises(RuntimeError, match="belongs to another thread"):
+        retargeter.step(cloud)                   # the stream is the other thread's now

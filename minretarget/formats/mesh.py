@@ -46,12 +46,19 @@ def read_points(path):
         points = load_npy(path)
     else:
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)    # "input contained no data"
-                points = np.loadtxt(path, usecols=(0, 1, 2), ndmin=2, comments="#")
-        except (ValueError, OSError, IndexError) as error:
+            # an empty file is no points; told apart first, since np.loadtxt would warn
+            # (and silencing a warning changes every thread's filters)
+            points = (np.loadtxt(path, usecols=(0, 1, 2), ndmin=2, comments="#")
+                      if _has_data(path) else np.empty((0, 3)))
+        except (ValueError, OSError, IndexError, UnicodeDecodeError) as error:
             raise ValueError(f"{path}: cannot read points: {error}") from None
     return checked_points(path, points, faces)
+
+
+def _has_data(path):
+    """Whether a text point file has a line that is neither blank nor a # comment."""
+    with open(path, encoding="utf-8", errors="replace") as file:
+        return any(line.strip() and not line.lstrip().startswith("#") for line in file)
 
 
 def checked_points(path, points, faces=None):
