@@ -11,6 +11,15 @@ started in this process (``batch.run_batch``) with every pair's frames counted:
     frames (wall / pairs minus the frames' time, measured in this process on a set-up,
     compiled retargeter), over the wall time of one ``minretarget retarget`` process for one
     pair (import, weights, target set-up and frames: what a shell loop pays per pair);
+  * ``overhead_split``: that overhead split into what a batch pays once and what each pair
+    adds, from the 1-worker batch of the 8 pairs against one of 4 of them (both sources onto
+    two of the targets, so the targets per pair stay the same): ``pair_marginal_seconds``, a
+    pair's cost, (wall of 8 - wall of 4) / 4; ``batch_fixed_seconds``, the rest of the wall
+    of 8 (the workers' start, the job check, the pool's end); ``pair_marginal_overhead_
+    seconds``, the marginal pair's cost beyond its frames (its share of the target set-ups);
+    ``fixed_seconds_per_pair``, the fixed seconds over 8 pairs. The overhead per pair is
+    their sum. ``local_1_pair_seconds``: each pair's seconds in the best 1-worker batch, in
+    the order run (the first pays the worker's set-up, each new target its set-up);
   * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started here, not
     timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
 Every process has one BLAS thread. Each time is the best of N runs (default 2), the settings
@@ -55,17 +64,30 @@ def make_job(folder, frames):
     np.save(folder / "walk_back.npy", tiled[::-1].copy())
     for name, scale in STRETCH.items():
         write_mesh(folder / f"{name}.ply", points * scale, faces)
-    job = folder / "job.json"
-    job.write_text(json.dumps({"sources": ["walk.npy", "walk_back.npy"],
-                               "targets": [f"{name}.ply" for name in STRETCH],
-                               "options": {"format": FORMATS}}))
-    return job
+    return write_job(folder / "job.json", list(STRETCH))
+
+
+def write_job(path, targets):
+    """Write a job of both sources onto ``targets`` (names in STRETCH) at ``path``."""
+    path.write_text(json.dumps({"sources": ["walk.npy", "walk_back.npy"],
+                                "targets": [f"{name}.ply" for name in targets],
+                                "options": {"format": FORMATS}}))
+    return path
 
 
 def files(folder):
     """{relative path: bytes} of a batch's outputs (its markers and summary aside)."""
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(Path(folder).rglob("*"))
             if p.is_file() and p.name not in (batch.SUMMARY, batch.DONE)}
+
+
+def run_order(out, summary):
+    """[[pair, seconds]] of a batch's pairs in the order they ran (by their done-markers'
+    times: the summary lists them longest first)."""
+    ended = {entry["pair"]: (out / entry["pair"] / batch.DONE).stat().st_mtime_ns
+             for entry in summary["pairs"]}
+    return [[entry["pair"], entry["seconds"]] for entry in
+            sorted(summary["pairs"], key=lambda entry: ended[entry["pair"]])]
 
 
 def busy_seconds():
@@ -110,33 +132,40 @@ def run(quick, repeats):
     # First: Ray's idle processes then run alongside every measurement alike.
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
              _node_ip_address="127.0.0.1")
-    settings = {"local_1": {"workers": 1}, "local_2": {"workers": 2},
-                "ray_2": {"workers": 2, "ray": "auto"}}
+    settings = {"local_1": ("job", {"workers": 1}), "local_2": ("job", {"workers": 2}),
+                "ray_2": ("job", {"workers": 2, "ray": "auto"}),
+                "local_1_half": ("half", {"workers": 1})}          # 4 of the pairs
     seconds = {name: [] for name in [*settings, "single", "frames"]}
     others = {"local_1": [], "local_2": []}        # Ray's workers are not this process's children
+    pair_seconds = []                               # each local_1 run's pairs, in order run
     try:
         with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
             folder = Path(temporary)
-            job = make_job(folder, length)
+            jobs = {"job": make_job(folder, length),
+                    "half": write_job(folder / "half.json", list(STRETCH)[:2])}
             frames_seconds(folder, folder / "compile")
             for index in range(repeats):   # interleaved: a change of load touches every setting
-                for name, options in settings.items():
+                for name, (job, options) in settings.items():
                     machine, ours = busy_seconds()
-                    summary = batch.run_batch(job, folder / f"{name}_{index}", progress=False,
-                                              **options)
-                    assert summary["done"] == pairs, summary
+                    summary = batch.run_batch(jobs[job], folder / f"{name}_{index}",
+                                              progress=False, **options)
+                    assert summary["done"] == (pairs if job == "job" else pairs // 2), summary
                     machine, ours = np.subtract(busy_seconds(), (machine, ours))
                     seconds[name].append(summary["seconds"])
                     if name in others:
                         others[name].append((machine - ours) / summary["seconds"])
+                    if name == "local_1":
+                        pair_seconds.append(run_order(folder / f"{name}_{index}", summary))
                 seconds["single"].append(single_run_seconds(folder, folder / f"single_{index}"))
                 seconds["frames"].append(frames_seconds(folder, folder / f"frames_{index}"))
             identical = {name: files(folder / f"{name}_0") == files(folder / "local_1_0")
                          for name in ("local_2", "ray_2")}
     finally:
         ray.shutdown()
-    local_1, local_2, on_ray, single, frames = (min(seconds[name]) for name in seconds)
+    local_1, local_2, on_ray, half, single, frames = (min(seconds[name]) for name in seconds)
     total = pairs * length
+    marginal = (local_1 - half) / (pairs - pairs // 2)       # seconds a pair adds
+    fixed = local_1 - pairs * marginal                       # seconds a batch pays once
     results.update(
         pairs=pairs, frames_per_pair=length,
         frames_per_second_1_worker=total / local_1,
@@ -145,6 +174,11 @@ def run(quick, repeats):
         seconds=seconds, single_run_seconds=single, frames_seconds_per_pair=frames,
         overhead_seconds_per_pair=local_1 / pairs - frames,
         overhead_fraction=(local_1 / pairs - frames) / single,
+        overhead_split={"batch_fixed_seconds": fixed, "pair_marginal_seconds": marginal,
+                        "pair_marginal_overhead_seconds": marginal - frames,
+                        "fixed_seconds_per_pair": fixed / pairs,
+                        "half_job_pairs": pairs // 2},
+        local_1_pair_seconds=pair_seconds[int(np.argmin(seconds["local_1"]))],
         single_run_overhead_fraction=(single - frames) / single,
         ray_overhead_fraction=on_ray / local_2 - 1,
         ray_identical=identical["ray_2"], local_identical=identical["local_2"],

@@ -30,7 +30,9 @@ included), then a done-marker, ``done.json`` (its ``summary.json`` entry, with t
 a job's keys). Pairs run longest first on a pool of
 worker processes (``--workers``, default one per core) or of Ray actors (``--ray``), each
 with one BLAS and numba thread, each keeping the weights and every target's set-up (skeleton
-and skinning weights, keyed by the target's content) between pairs. A failing pair (a bad
+and skinning weights, keyed by the target's content) between pairs; of the pairs equally
+long, a worker takes one whose target it has set up, else one whose target no worker has. A
+failing pair (a bad
 file, a NaN frame) is recorded with its reason and the others go on; a pair whose worker dies
 is run again (``ATTEMPTS`` in all), from its checkpoint. ``--resume`` skips the pairs done and
 resumes the others from their checkpoints; without it a DIR holding any pair's folder is
@@ -38,12 +40,15 @@ refused. ``DIR/summary.json`` lists every pair's status, frames, seconds and out
 command exits with status 0 only if every pair is done.
 """
 import argparse
+import atexit
 import concurrent.futures
 import contextlib
 import ctypes
+import gc
 import glob
 import hashlib
 import io
+import itertools
 import json
 import multiprocessing
 import os
@@ -388,9 +393,13 @@ def start_worker(report=None):
 def start_local_worker(report):
     """``start_worker`` in a process of the local pool, which on Linux the kernel kills when
     the batch process dies: a killed batch leaves no worker writing into a pair that a
-    ``--resume`` runs again."""
+    ``--resume`` runs again. At its exit the garbage collector skips the objects it holds:
+    the interpreter's collections over numba's and the weights' objects took 0.3 s of a
+    worker's exit, which the batch waits for, and freed nothing that had to be (its files
+    are closed by then)."""
     if sys.platform.startswith("linux"):
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)       # PR_SET_PDEATHSIG
+    atexit.register(gc.freeze)
     start_worker(report)
 
 
@@ -505,28 +514,34 @@ def schedule(pairs, slots, submit, lost, drain):
     entries (with ``attempts``) as they end.
 
     Args:
-        pairs: [Pair], in the order to start them.
+        pairs: [Pair], longest first: a slot that frees starts one of the longest waiting,
+            one whose target its worker has set up where it can (``_pick``).
         slots: the workers, each given one pair at a time.
         submit: ``submit(slot, pair)`` -> a concurrent.futures.Future of ``run_pair(pair)``.
         lost: the exception type(s) of a Future whose worker died: its pair runs again,
             from its checkpoint, first in line, ``ATTEMPTS`` times in all.
         drain: called every ``REPORT_EVERY`` seconds (to show progress).
     """
-    waiting, free, running, tries = list(pairs), list(slots), {}, Counter()
+    waiting, free, running, tries = list(pairs), list(range(len(slots))), {}, Counter()
+    held = [set() for _ in slots]           # per slot: the targets its worker has set up
     while waiting or running:
         while waiting and free:
-            pair, slot = waiting.pop(0), free.pop()
+            index = free.pop()
+            pair = waiting.pop(_pick(waiting, held, index))
+            held[index].add(_target_key(pair))
             tries[pair.name] += 1
-            running[submit(slot, pair)] = slot, pair
+            running[submit(slots[index], pair)] = index, pair
         done, _ = concurrent.futures.wait(running, timeout=REPORT_EVERY,
                                           return_when=concurrent.futures.FIRST_COMPLETED)
         drain()
         for future in done:
-            slot, pair = running.pop(future)
-            free.append(slot)
+            index, pair = running.pop(future)
+            free.append(index)
             try:
                 entry = future.result()
             except lost as error:
+                for targets in held:        # a new worker (a local pool: new workers)
+                    targets.clear()
                 if tries[pair.name] < ATTEMPTS:
                     waiting.insert(0, pair)
                     continue
@@ -536,6 +551,27 @@ def schedule(pairs, slots, submit, lost, drain):
                 entry = _entry(pair, "failed", outputs=[],
                                error=f"internal error: {type(error).__name__}: {error}")
             yield {**entry, "attempts": tries[pair.name]}
+
+
+def _target_key(pair):
+    """What a worker's set-up of a pair's target depends on (``_set_target``'s key, the
+    target named instead of hashed)."""
+    return pair.target, pair.options["weights"], pair.options["refine"]
+
+
+def _pick(waiting, held, index):
+    """Which of ``waiting`` (longest first) slot ``index`` starts: among the pairs as long as
+    the first, the first whose target that slot's worker has set up, else the first whose
+    target no worker has, else the first. Equal pairs (one source onto every target, or the
+    benchmark's) then share out the targets instead of each worker setting up every one; a
+    longer pair never waits for a shorter. (A local pool's pair goes to whichever process is
+    idle: the one that has just ended this slot's pair, unless two ended at once.)"""
+    ties = [(i, _target_key(pair)) for i, pair in enumerate(
+        itertools.takewhile(lambda pair: pair.frames == waiting[0].frames, waiting))]
+    anyone = set().union(*held)
+    mine = [i for i, key in ties if key in held[index]]
+    fresh = [i for i, key in ties if key not in anyone]
+    return (mine or fresh or [0])[0]
 
 
 class LocalPool:
@@ -548,7 +584,7 @@ class LocalPool:
         # spawn: a worker starts clean (no threads or BLAS state forked from this process)
         self.context = multiprocessing.get_context("spawn")
         self.progress = self.context.Queue()
-        self.slots = [None] * count
+        self.slots = list(range(count))        # a pair goes to any idle process
         self.executor = self._executor()
 
     def _executor(self):

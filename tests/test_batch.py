@@ -2,6 +2,7 @@
 outputs the bytes of its own `retarget` run with the same options (local pool and Ray alike;
 units told from the files, shipped bodies by name), resume, failures kept to their pair, a
 killed worker's pair run again."""
+import concurrent.futures
 import json
 import os
 import signal
@@ -169,6 +170,31 @@ def test_local_batch_writes_what_each_retarget_run_writes(local_run, reference):
     assert summary["frames"] == 240 and summary["workers"] == 2
     assert json.loads((out / "slim" / "long" / batch.DONE).read_text())["outputs"] == [
         "frame_000000.ply .. frame_000099.ply", "result.npz", "result.glb", "result.bvh"]
+
+
+def test_equal_pairs_share_out_the_targets_and_longer_pairs_start_first():
+    """A slot that frees takes, among the pairs as long as the longest waiting, one whose
+    target its worker has set up, else one whose target no worker has: with two workers each
+    target is set up by one of them, not by both; a longer pair still starts first."""
+    def pair(source, target, frames):
+        return batch.Pair(f"{target}/{source}", source, target,
+                          {"weights": None, "refine": True}, frames, "")
+
+    pairs = [pair("long", target, 50) for target in "xy"] + [
+        pair(source, target, 10) for target in "xy" for source in "abc"]
+    started = []
+
+    def submit(slot, pair):
+        started.append((slot, pair))
+        future = concurrent.futures.Future()
+        future.set_result({"pair": pair.name})
+        return future
+
+    ended = list(batch.schedule(pairs, ["one", "two"], submit, (), lambda: None))
+    assert sorted(e["pair"] for e in ended) == sorted(p.name for p in pairs)
+    assert {p.source for _, p in started[:2]} == {"long"}
+    targets = {slot: {p.target for s, p in started if s == slot} for slot in ("one", "two")}
+    assert sorted(map(sorted, targets.values())) == [["x"], ["y"]]
 
 
 def test_a_failing_pair_does_not_stop_the_others(library, reference, tmp_path, capsys):
