@@ -22,7 +22,8 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    fit and SKR's reading disagree (by default: always), the frame is also fitted from the
    reading's pose (the analytic bone alignment of the model onto it); after
    ``race_iterations`` steps from each, the one that meets the cloud better goes on: a lost
-   track recovers, a leg never passes through empty space to follow the reading.
+   track recovers, a leg never passes through empty space to follow the reading. A cloud
+   where the body is not found (``LOST_COST``) is skipped: the last pose is held through it.
 
 Lengths are metres; the solver works in float64.
 """
@@ -45,6 +46,10 @@ _PARENTS = np.asarray(PARENTS, dtype=np.int64)
 PARAMETERS = 3 + 3 * NUM_JOINTS      # root translation, then one rotation vector per joint
 MAX_TURN, MAX_SHIFT = 0.3, 0.1       # radians per joint, metres: the largest step taken
 TRUNCATE = 0.05                      # metres: the farthest a point counts in a fit's cost
+# A frame whose fit costs more has lost the body (validation frames cost 0.028-0.043 m; a
+# cloud that misses the model entirely costs 0.075: every distance past TRUNCATE): the fit
+# holds the last pose through it instead of following SKR's reading of it.
+LOST_COST = 0.06
 # Robust widths (metres) of the first frame's rounds of pose and shape: wide first, so that a
 # body far from the mean is pulled in before it is fitted.
 CALIBRATION_WIDTHS = (0.2, 0.1, 0.07, 0.05, 0.03, 0.03, 0.03, 0.03)
@@ -142,6 +147,7 @@ class FitState(NamedTuple):
     root: np.ndarray            # (3,) its pelvis position, metres
     joints: np.ndarray          # (2, J, 3) the last two frames' joints (older first)
     calibration: tuple          # ((cloud (P, 3), its grid, local, root), ...), calibrating
+    cost: float = 0.0           # the last frame's fit cost (``fit_pose``), metres
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -493,10 +499,10 @@ def start_fit(model, settings, cloud, reading):
                                      ((settings.reading_pull, reading),))
         shape = fit_shape(model, shape, [(cloud, grid, local, root)], settings, width)
         rest, tpose_joints = shaped(model, shape)
-    local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
-                                      settings, ((settings.reading_pull, reading),))
+    local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
+                                         settings, ((settings.reading_pull, reading),))
     state = FitState(1, shape, local, root, np.stack([joints, joints]),
-                     ((cloud, grid, local, root),))
+                     ((cloud, grid, local, root),), cost)
     return state, joints
 
 
@@ -524,6 +530,8 @@ def fit_frame(model, settings, state, cloud, reading):
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,
             settings._replace(iterations=settings.iterations - race.iterations), pulls)
+    if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
+        return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration
     if t < settings.calibration_frames:
         calibration = calibration + ((cloud, grid, local, root),)
@@ -531,11 +539,11 @@ def fit_frame(model, settings, state, cloud, reading):
         if t == settings.calibration_frames - 1:
             shape = settle_shape(model, shape, calibration, settings)
             rest, tpose_joints = shaped(model, shape)
-            local, root, joints, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local,
-                                              root, settings, pulls)
+            local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid,
+                                                 local, root, settings, pulls)
     elif calibration:
         calibration = ()                 # calibrated: the clouds are no longer needed
-    return (FitState(t + 1, shape, local, root, np.stack([last, joints]), calibration),
+    return (FitState(t + 1, shape, local, root, np.stack([last, joints]), calibration, cost),
             joints, reseeded)
 
 

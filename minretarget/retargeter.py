@@ -6,13 +6,14 @@
         frame = retargeter.step(points)               # frame.vertices (V, 3) in target order
 """
 import threading
+import warnings
 from typing import NamedTuple
 
 import numpy as np
 
 from .contacts import FootLock, check_foot_lock, plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
-from .fit import body_model, check_fit_settings, fit_frame, start_fit
+from .fit import LOST_COST, body_model, check_fit_settings, fit_frame, start_fit
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
@@ -21,7 +22,7 @@ from .skin import linear_blend_skinning, skinning_weights
 from .skr import mirror_averaged, regress_joints
 from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
-from .validation import as_float32_array, as_point_cloud, as_workers, check_body
+from .validation import FitWarning, as_float32_array, as_point_cloud, as_workers, check_body
 from .weights import Weights, load_weights
 
 
@@ -299,6 +300,11 @@ class Retargeter:
         else:
             self.fit_state, joints, _ = fit_frame(body_model(), self.fit_source,
                                                   self.fit_state, points, reading)
+        if self.fit_state.cost > LOST_COST:
+            warnings.warn(f"frame {self.fit_state.frames - 1}: the source fit found no body "
+                          f"in this cloud (mean distance {100 * self.fit_state.cost:.1f} cm); "
+                          "it holds the last frame's pose until the body is back",
+                          FitWarning, stacklevel=4)
         return joints.astype(np.float32)
 
     def pose(self, rotations, root):

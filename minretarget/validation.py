@@ -87,6 +87,10 @@ class UpAxisWarning(InputWarning):
     """The body lies along Z instead of standing along +Y: the file is probably Z-up."""
 
 
+class FitWarning(InputWarning):
+    """The source fit found no body in a cloud (it lost the body, or the cloud is not one)."""
+
+
 class TPoseWarning(InputWarning):
     """The target's arms are far from horizontal: it is probably not in T-pose."""
 

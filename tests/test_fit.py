@@ -239,3 +239,25 @@ def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):
     # without a cloud there is nothing to fit: the skeleton given is handed on
     given = first.skeleton(clouds[4])
     np.testing.assert_array_equal(second.step_skeleton(given).source_joints, given)
+
+
+def test_a_cloud_without_the_body_is_warned_of_by_frame_and_recovered_from(sample_clouds):
+    from minretarget.retargeter import Retargeter
+    from minretarget.validation import FitWarning
+    from minretarget.weights import load_weights
+    clouds, target = sample_clouds
+    settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
+    retargeter = Retargeter(load_weights(), smoothing=None, denoise=False, foot_lock=None,
+                            facing_check=False, fit_source=settings, warn=False)
+    retargeter.set_target(target)
+    plain = Retargeter(load_weights(), smoothing=None, denoise=False, foot_lock=None,
+                       facing_check=False, fit_source=settings, warn=False)
+    plain.set_target(target)
+    stream = list(clouds)
+    stream[3] = stream[3] + [3.0, 0.0, 0.0]           # frame 3 misses the body by 3 m
+    with pytest.warns(FitWarning, match="frame 3: the source fit found no body"):
+        frames = list(retargeter.run(stream))
+    assert np.isfinite(frames[3].source_joints).all()
+    # one frame later the fit is where it would have been without the lost frame
+    expected = list(plain.run(clouds))[4].source_joints
+    assert np.linalg.norm(frames[4].source_joints - expected, axis=1).mean() < 0.02
