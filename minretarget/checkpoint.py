@@ -36,6 +36,7 @@ import numpy as np
 
 from .atomic import atomic_write
 from .contacts import FootLock
+from .fit import FitSettings, fit_state_arrays, fit_state_from_arrays
 from .conventions import NUM_JOINTS
 from .formats.npz import ARCHIVE_ERRORS, load_npz
 from .outputs import previous_outputs, remove_outputs
@@ -146,7 +147,7 @@ def source_stamp(source):
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
                foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
-               facing_check=True, skeleton_map=None):
+               facing_check=True, skeleton_map=None, fit_source=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count, rate, units and up axis, a BVH's skeleton map, and its files' sizes
     and times: ``source_stamp``), the target and weights
@@ -174,23 +175,30 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             **({"refine": True} if refine and weights.refine is not None else {}),
             **({"denoise": True} if denoise and weights.denoise is not None else {}),
             **({"rest_pose": True} if rest_pose and weights.rest_pose is not None else {}),
-            **({"facing_check": True} if facing_check and source.kind == "points" else {})}
+            **({"facing_check": True} if facing_check and source.kind == "points" else {}),
+            # Recorded only when on, as the others (skeleton sources are never fitted).
+            **({"source_fit": list(fit_source)}
+               if fit_source is not None and source.kind == "points" else {})}
 
 
-def save_checkpoint(out_dir, run, state, frames_done, track):
+def save_checkpoint(out_dir, run, state, frames_done, track, fit_state=None):
     """Record that ``frames_done`` frames are complete, with the SMRM ``state`` after them
-    (None before the first); their track records are synced to disk first."""
+    (None before the first) and the source fit's (``fit.FitState``, if the run fits); their
+    track records are synced to disk first."""
     track.sync()
     arrays = {"version": np.array(VERSION), "run": np.array(json.dumps(run, sort_keys=True)),
               "frames_done": np.array(frames_done, np.int64)}
     if state is not None:
         arrays.update(state._asdict(), frames_seen=np.array(state.frames_seen, np.int64))
+    if fit_state is not None:
+        arrays.update({f"fit.{key}": value for key, value in fit_state_arrays(fit_state).items()})
     with atomic_write(Path(out_dir) / CHECKPOINT) as file:
         np.savez(file, **arrays)
 
 
 # Run record entries that hold a NamedTuple's values, by its fields.
-_FIELDS = {"smoothing": Smoothing._fields, "foot_lock": FootLock._fields}
+_FIELDS = {"smoothing": Smoothing._fields, "foot_lock": FootLock._fields,
+           "source_fit": FitSettings._fields}
 
 
 def difference(key, then, now):
@@ -250,6 +258,20 @@ def load_checkpoint(out_dir, run, weights):
         raise ValueError(f"{path}: its state has seen {state.frames_seen} frames, not "
                          f"{frames_done}")
     return frames_done, state
+
+
+def load_fit_state(out_dir, model):
+    """The source fit's state in ``out_dir``'s checkpoint (``save_checkpoint``), or None if
+    it holds none; ValueError naming the file if it is damaged."""
+    path = Path(out_dir) / CHECKPOINT
+    arrays = load_npz(path)
+    if "fit.frames" not in arrays:
+        return None
+    try:
+        return fit_state_from_arrays({key[len("fit."):]: value for key, value in arrays.items()
+                                      if key.startswith("fit.")}, model)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{path}: bad saved fit state: {error}") from None
 
 
 def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):

@@ -8,7 +8,7 @@
                          [--points N] [--seed S]
                          [--weights FILE] [--threads N] [--no-smoothing] [--no-foot-lock]
                          [--mirror-source] [--no-refine] [--no-denoise] [--no-rest-pose]
-                         [--no-facing-check]
+                         [--no-facing-check] [--source-fit]
                          [--resume | --overwrite]
     minretarget render RESULT --out FILE.png|FILE.gif
     minretarget batch JOB --out DIR [--workers N] [--ray auto|ADDRESS] [--resume]
@@ -50,10 +50,12 @@ from ._jit import on_first_compile
 from .bvh import read_bvh
 from .bodies import body_lines
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
-                         abandon_run, finish_run, prepare_out_dir, run_record, save_checkpoint)
+                         abandon_run, finish_run, load_fit_state, prepare_out_dir, run_record,
+                         save_checkpoint)
 from .contacts import FootLock
 from .conventions import MIN_POINTS
 from .extras import MissingExtra, require
+from .fit import FitSettings, body_model
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
                       previous_outputs)
 from .render import render
@@ -71,7 +73,7 @@ DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
                     mirror_source=False, refine=True, denoise=True, rest_pose=True,
-                    facing_check=True):
+                    facing_check=True, fit_source=None):
     """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
     what to do when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
@@ -83,7 +85,7 @@ def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
     return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
                                    foot_lock=foot_lock, mirror_source=mirror_source,
                                    refine=refine, denoise=denoise, rest_pose=rest_pose,
-                                   facing_check=facing_check)
+                                   facing_check=facing_check, fit_source=fit_source)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL, tpose_joints=None,
@@ -165,7 +167,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                      smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
                      mirror_source=retargeter.mirror_source, refine=retargeter.refine,
                      denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
-                     facing_check=retargeter.facing_check,
+                     facing_check=retargeter.facing_check, fit_source=retargeter.fit_source,
                      **settings)
     # Before the folder is touched (a Ctrl-C in a cold cache's compile leaves it as it was)
     # and before the progress bar starts.
@@ -178,15 +180,17 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     if demo:
         (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
     retargeter.state = state
+    if start and run.get("source_fit"):
+        retargeter.fit_state = load_fit_state(out_dir, body_model())
     step = retargeter.step if source.kind == "points" else retargeter.step_skeleton
     track = Track(out_dir / TRACK, start)
     # A resumed run's npz gets the first frames' vertices again from their saved rotations
     # and root, posed exactly as the interrupted run posed them.
     past = (retargeter.pose(fields["rotations"], fields["root"])[0]
             for fields in track.frames())
-    done = start
+    done, fit_state = start, retargeter.fit_state
     try:
-        save_checkpoint(out_dir, run, state, start, track)
+        save_checkpoint(out_dir, run, state, start, track, fit_state)
         with open_writers(out_dir, formats, retargeter.target, source.count, source.fps, space,
                           track, past) as write, stop_between_steps() as stop_asked:
             frames = tqdm(source.frames, total=source.count, initial=start, unit="frame",
@@ -199,16 +203,16 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                 if index == 0:
                     check_body(data, source.frame_name(0), source.space, role="source")
                 write(frame)
-                done, state = index + 1, retargeter.state
+                done, state, fit_state = index + 1, retargeter.state, retargeter.fit_state
                 if stop_asked:
                     raise KeyboardInterrupt
                 if done % CHECKPOINT_EVERY == 0:
-                    save_checkpoint(out_dir, run, state, done, track)
+                    save_checkpoint(out_dir, run, state, done, track, fit_state)
     except BaseException as error:
         # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here (and
         # say so); with nothing done, leave the folder as it was.
         if done > start:
-            save_checkpoint(out_dir, run, state, done, track)
+            save_checkpoint(out_dir, run, state, done, track, fit_state)
         elif start == 0:
             track.close()
             abandon_run(out_dir, created)
@@ -274,10 +278,12 @@ def pipeline_settings(args):
     foot_lock = None if args.no_foot_lock else FootLock()
     if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
         foot_lock = foot_lock._replace(max_offset=args.foot_leash)
-    return {"smoothing": None if args.no_smoothing else Smoothing(), "foot_lock": foot_lock,
-            "mirror_source": args.mirror_source, "refine": not args.no_refine,
-            "denoise": not args.no_denoise, "rest_pose": not args.no_rest_pose,
-            "facing_check": not args.no_facing_check}
+    fitted = args.source_fit      # the fit's skeleton is neither smoothed nor denoised
+    return {"smoothing": None if args.no_smoothing or fitted else Smoothing(),
+            "foot_lock": foot_lock, "mirror_source": args.mirror_source,
+            "refine": not args.no_refine, "denoise": not (args.no_denoise or fitted),
+            "rest_pose": not args.no_rest_pose, "facing_check": not args.no_facing_check,
+            "fit_source": FitSettings() if fitted else None}
 
 
 def target_of(args):
@@ -502,6 +508,11 @@ def add_retarget_arguments(retarget):
                           help="take every SKR skeleton as it comes (default: one that faces "
                                "far from the heading kept so far is read again from the cloud "
                                "turned half round, and the reading facing nearer kept)")
+    retarget.add_argument("--source-fit", action="store_true",
+                          help="track a calibrated body model in every source cloud after SKR "
+                               "and hand its joints on, neither smoothed nor denoised "
+                               "(docs/source_fit.md: a truer skeleton, about 11 ms more a "
+                               "frame and 4 s of calibration at the start)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

@@ -547,6 +547,40 @@ def fit_frame(model, settings, state, cloud, reading):
             joints, reseeded)
 
 
+def fit_state_arrays(state):
+    """A ``FitState`` as flat arrays (for a checkpoint ``.npz``): its fields, and the
+    calibration frames' clouds concatenated with their counts (grids are rebuilt on load)."""
+    calibration = state.calibration
+    return {"frames": np.array(state.frames, np.int64), "shape": state.shape,
+            "local": state.local, "root": state.root, "joints": state.joints,
+            "cost": np.array(state.cost),
+            "calibration_points": (np.concatenate([frame[0] for frame in calibration])
+                                   if calibration else np.empty((0, 3))),
+            "calibration_counts": np.array([len(frame[0]) for frame in calibration], np.int64),
+            "calibration_local": np.array([frame[2] for frame in calibration]).reshape(
+                -1, NUM_JOINTS, 3, 3),
+            "calibration_root": np.array([frame[3] for frame in calibration]).reshape(-1, 3)}
+
+
+def fit_state_from_arrays(arrays, model):
+    """``fit_state_arrays``'s inverse, checked against the body model (ValueError)."""
+    shapes = {"shape": (len(model.points_basis),), "local": (NUM_JOINTS, 3, 3), "root": (3,),
+              "joints": (2, NUM_JOINTS, 3)}
+    for key, shape in shapes.items():
+        if np.shape(arrays[key]) != shape:
+            raise ValueError(f"the fit's {key} has shape {np.shape(arrays[key])}, not {shape}")
+    counts = np.asarray(arrays["calibration_counts"], np.int64)
+    clouds = np.split(np.asarray(arrays["calibration_points"], np.float64),
+                      np.cumsum(counts)[:-1]) if len(counts) else []
+    calibration = tuple((cloud, build_grid(cloud), np.asarray(local, np.float64),
+                         np.asarray(root, np.float64))
+                        for cloud, local, root in zip(clouds, arrays["calibration_local"],
+                                                      arrays["calibration_root"]))
+    return FitState(int(arrays["frames"]), *(np.asarray(arrays[key], np.float64)
+                                             for key in ("shape", "local", "root", "joints")),
+                    calibration, float(arrays["cost"]))
+
+
 def track(model, settings, clouds, readings):
     """A whole stream, online (frame t sees frames <= t only): clouds (T, P, 3) (or any
     iterable of (P, 3)), SKR's readings (T, J, 3) -> fitted joints (T, J, 3) float32, and

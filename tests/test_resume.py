@@ -392,3 +392,29 @@ def test_a_resume_refuses_a_source_file_changed_since(inputs, tmp_path, monkeypa
     ("points", 2048, 1024, "points 2048 then, 1024 now")])
 def test_a_resume_names_what_differs_in_words(key, then, now, said):
     assert difference(key, then, now) == said
+
+
+@pytest.mark.parametrize("stop_after", [6, 17])     # in the fit's calibration, and after it
+def test_a_fitted_run_resumes_to_the_same_bytes(tmp_path, stop_after):
+    """--source-fit: the fit's state (its calibration clouds too) goes into the checkpoint,
+    so a run stopped by Ctrl-C and resumed writes the bytes of one that never stopped."""
+    with np.load(ROOT / "minretarget" / "data" / "sample.npz") as sample:
+        np.save(tmp_path / "frames.npy", sample["source_points"][:24])
+        write_mesh(tmp_path / "target.ply", sample["target_points"], sample["target_faces"])
+    args = ["retarget", str(tmp_path / "frames.npy"), str(tmp_path / "target.ply"),
+            "--format", "ply,npz,bvh", "--weights", WEIGHTS, "--source-fit", "--out"]
+    assert cli.main(args + [str(tmp_path / "reference")]) == 0
+    out = tmp_path / "stopped"
+    process = start_process(args + [str(out)])
+    deadline = time.monotonic() + 120
+    while not (out / f"frame_{stop_after:06d}.ply").exists():
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+        time.sleep(0.005)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    with np.load(out / CHECKPOINT) as checkpoint:
+        done = int(checkpoint["frames_done"])
+        assert done < 24 and int(checkpoint["fit.frames"]) == done
+    assert cli.main(args + [str(out), "--resume"]) == 0
+    assert files(out) == files(tmp_path / "reference")
