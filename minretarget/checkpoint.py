@@ -135,14 +135,24 @@ def _digest(arrays):
 
 
 def source_stamp(source):
-    """SHA-256 of the name, size and modification time of each file of ``source`` (a
-    folder's frame files, or the one file): a file rewritten since a run began changes it,
-    as ``make`` would tell, without reading every frame again."""
-    digest = hashlib.sha256()
+    """One short SHA-256 per file of ``source`` (a folder's frame files in order, or the one
+    file) of its name, size and modification time: a file rewritten since a run began
+    changes its own, as ``make`` would tell, without reading every frame again."""
+    stamps = []
     for path in source.files or (source.path,):
         status = os.stat(path)
-        digest.update(f"{Path(path).name}\0{status.st_size}\0{status.st_mtime_ns}\n".encode())
-    return digest.hexdigest()
+        line = f"{Path(path).name}\0{status.st_size}\0{status.st_mtime_ns}"
+        stamps.append(hashlib.sha256(line.encode()).hexdigest()[:16])
+    return stamps
+
+
+def same_source(then, now, frames_done):
+    """Whether a run's source stamps allow resuming after ``frames_done`` frames: a folder's
+    frames not yet done may have changed (a bad frame fixed after it stopped the run), those
+    done may not; one file (a clip, a BVH) must be as it was."""
+    if not (isinstance(then, list) and isinstance(now, list)) or len(then) != len(now):
+        return then == now
+    return then[:frames_done] == now[:frames_done] if len(now) > 1 else then == now
 
 
 def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
@@ -205,7 +215,7 @@ def difference(key, then, now):
     """One entry of two run records that differ, for people: "foot_lock max_offset 0.01
     then, 0.1 now", "the target differs (its SHA-256)", "refine off then, on now"."""
     if key == "source_stamp":
-        return "the source's files changed (their sizes or times)"
+        return "the source's files of the frames done changed (their sizes or times)"
     if key.endswith("_sha256"):
         return f"the {key[:-len('_sha256')]} differs (its SHA-256)"
     if key in _FIELDS and isinstance(then, list) and isinstance(now, list):
@@ -239,7 +249,9 @@ def load_checkpoint(out_dir, run, weights):
     # Over both records' keys: an option recorded only when on (refine, denoise, rest_pose,
     # facing_check) may be off.
     differences = [difference(key, saved.get(key), run.get(key))
-                   for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)]
+                   for key in dict.fromkeys([*run, *saved]) if saved.get(key) != run.get(key)
+                   and not (key == "source_stamp"
+                            and same_source(saved.get(key), run.get(key), frames_done))]
     if differences:
         raise ValueError(f"{path}: this output was started with other inputs or options "
                          f"({'; '.join(differences)}); resume with the same ones, or use "

@@ -381,8 +381,28 @@ def test_a_resume_refuses_a_source_file_changed_since(inputs, tmp_path, monkeypa
     os.utime(folder / "f1.npy", ns=(1, 1))                          # whatever the clock says
     capsys.readouterr()
     assert cli.main(args + ["--resume"]) == 1
-    assert "(the source's files changed (their sizes or times))" in capsys.readouterr().err
+    assert ("(the source's files of the frames done changed (their sizes or times))"
+            in capsys.readouterr().err)
     assert cli.main(args + ["--overwrite"]) == 0
+
+
+def test_a_bad_frame_fixed_after_it_stopped_the_run_resumes(inputs, tmp_path, capsys):
+    """The error says 'fix it, then add --resume': a frame not yet done may change."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    clouds = np.load(inputs / "frames.npy")[:6]
+    for t, cloud in enumerate(clouds):
+        np.save(folder / f"f{t}.npy", cloud)
+    args = arguments(inputs, tmp_path / "reference", "--format", "npz")
+    args[1] = str(folder)
+    assert cli.main(args) == 0
+    np.save(folder / "f4.npy", np.full_like(clouds[4], np.nan))
+    args[args.index("--out") + 1] = str(tmp_path / "stopped")
+    assert cli.main(args) == 1
+    assert "add --resume to continue" in capsys.readouterr().err
+    np.save(folder / "f4.npy", clouds[4])
+    assert cli.main(args + ["--resume"]) == 0
+    assert files(tmp_path / "stopped") == files(tmp_path / "reference")
 
 
 @pytest.mark.parametrize("key, then, now, said", [
