@@ -1,0 +1,122 @@
+"""Candidate settings of the source fit on validation (docs/source_fit.md, "Settings").
+
+    python benchmarks/fit_settings.py [--fit JSON ...] [--cmu DIR] [--json OUT.json]
+
+Each ``--fit`` is a JSON object of ``minretarget.fit.FitSettings`` fields (default: one
+candidate, ``{}``, the shipped settings). Every validation trial
+(``training.data.datasets.validation_sequences``) is read by the shipped SKR and refiner
+(``Retargeter.skeleton``), tracked by ``fit.track`` with each candidate, and the fitted
+skeletons retargeted by ``Retargeter.step_skeleton`` with the shipped weights, smoothing and
+denoiser off. Per candidate: the source skeleton's error (``metrics.joint_errors``, mm), its
+jitter (mean second difference, mm), its frames with crossed legs (``metrics.crossed_feet``),
+the frames where the start from SKR's reading won, the target's MPJPE, PA-MPJPE, Acc,
+PA-Acc (mm) and toe speed on the truth's contacts (m/s), frame-weighted, and the fit's
+milliseconds a frame (on this machine, with whatever else runs).
+"""
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from minretarget.fit import FitSettings, body_model, check_fit_settings, track
+from minretarget.metrics import crossed_feet, evaluate, foot_contacts, foot_speeds, joint_errors
+from minretarget.retargeter import Retargeter
+from minretarget.weights import load_weights
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from accuracy import CONTACT_HEIGHT, command_line, write_text  # noqa: E402
+
+
+def candidate(text):
+    """A --fit value: JSON of FitSettings fields -> checked FitSettings."""
+    try:
+        return check_fit_settings(FitSettings(**json.loads(text)))
+    except (json.JSONDecodeError, TypeError, ValueError) as error:
+        raise argparse.ArgumentTypeError(f"{text}: {error}") from None
+
+
+def score(settings, sequence, reading, weights):
+    """One candidate on one sequence -> {figure: value}, and the fit's seconds."""
+    clouds, truth = sequence["source_points"], sequence["source_joints"]
+    start = time.perf_counter()
+    fitted, won = track(body_model(), settings, clouds, reading)
+    seconds = time.perf_counter() - start
+    retargeter = Retargeter(weights, smoothing=None, denoise=False)
+    retargeter.set_target(sequence["target_tpose_points"])
+    frames = [retargeter.step_skeleton(joints) for joints in fitted]
+    joints = np.stack([f.joints for f in frames])
+    target = evaluate(joints, sequence["target_joints"], np.stack([f.vertices for f in frames]),
+                      sequence["target_points"], rest_points=sequence["target_tpose_points"])
+    contacts = foot_contacts(sequence["target_joints"], CONTACT_HEIGHT)
+    second = np.linalg.norm(fitted[2:] - 2 * fitted[1:-1] + fitted[:-2], axis=2)
+    return {**{f"source {group}": 1e3 * error
+               for group, error in joint_errors(fitted, truth).items()},
+            "source jitter": 1e3 * float(second.mean()) if len(second) else 0.0,
+            "crossed": int(crossed_feet(fitted, truth).sum()),
+            "reading won": int(won[1:].sum()),
+            **{name: 1e3 * target[name] for name in ("MPJPE", "PA-MPJPE", "Acc", "PA-Acc")},
+            "toes": [float(foot_speeds(joints)[contacts].sum()), int(contacts.sum())]}, seconds
+
+
+def summarize(runs):
+    """Per-sequence figures -> frame-weighted means (sums for counts, pooled toes)."""
+    frames = np.array([run["frames"] for run in runs], float)
+    out = {}
+    for key in runs[0]["figures"]:
+        values = [run["figures"][key] for run in runs]
+        if key == "toes":
+            out[key] = sum(v[0] for v in values) / max(1, sum(v[1] for v in values))
+        elif key in ("crossed", "reading won"):
+            out[key] = int(sum(values))
+        else:
+            out[key] = float(np.dot(values, frames) / frames.sum())
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--fit", type=candidate, action="append",
+                        help="FitSettings fields as JSON, e.g. '{\"race_iterations\": 4}'")
+    parser.add_argument("--cmu", default=str(Path(__file__).resolve().parents[2] / "shared"
+                                              / "data" / "cmu"))
+    parser.add_argument("--json", help="write the results here")
+    args = parser.parse_args(argv)
+    if not Path(args.cmu).is_dir():
+        parser.error(f"--cmu {args.cmu}: no such folder (the validation trials are read there)")
+    from training.data.datasets import validation_sequences
+    candidates = args.fit or [FitSettings()]
+    weights = load_weights()
+    reader = Retargeter(weights)
+    runs = {index: [] for index in range(len(candidates))}
+    fit_seconds = np.zeros(len(candidates))
+    for held_out in validation_sequences(args.cmu):
+        sequence = held_out.build()
+        reading = reader.skeleton(sequence["source_points"])
+        for index, settings in enumerate(candidates):
+            figures, seconds = score(settings, sequence, reading, weights)
+            fit_seconds[index] += seconds
+            runs[index].append({"sequence": held_out.name, "frames": held_out.frames,
+                                "figures": figures})
+        print(f"{held_out.name} ({held_out.frames} frames) done", flush=True)
+    results = []
+    for index, settings in enumerate(candidates):
+        total = sum(run["frames"] for run in runs[index])
+        results.append({"settings": settings._asdict(), "summary": summarize(runs[index]),
+                        "fit_ms_per_frame": 1e3 * fit_seconds[index] / total,
+                        "per_sequence": runs[index]})
+        row = results[-1]["summary"]
+        print(json.dumps({key: v for key, v in settings._asdict().items()
+                          if v != FitSettings._field_defaults[key]}) + ": "
+              + ", ".join(f"{key} {value:.3f}" if key == "toes" else
+                          f"{key} {value:.2f}" if isinstance(value, float) else
+                          f"{key} {value}" for key, value in row.items())
+              + f", {results[-1]['fit_ms_per_frame']:.1f} ms a frame")
+    if args.json:
+        write_text(args.json, json.dumps({"candidates": results}, indent=2))
+
+
+if __name__ == "__main__":
+    command_line(main)
