@@ -19,7 +19,9 @@ setup(
     long_description_content_type="text/markdown",
     license="MIT",
     python_requires=">=3.10",
-    packages=find_packages(include=["minretarget", "minretarget.*", "training", "training.*"]),
+    # Only the runtime is installed: `training` (the torch reference) runs from the checkout
+    # (`python -m training...` from the repository root), never from site-packages.
+    packages=find_packages(include=["minretarget", "minretarget.*"]),
     package_data={"minretarget": ["data/*.npz", "data/*.json", "data/*.sha256"]},
     install_requires=["numpy>=1.24", "numba>=0.59", "scipy>=1.10"],
     entry_points={"console_scripts": ["minretarget = minretarget.cli:main"]},

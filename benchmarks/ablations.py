@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from accuracy import load_sequence, select_sequences, stream, write_text
+from accuracy import load_sequence, select_sequences, stream, training_env, write_text
 from minretarget.metrics import METRIC_NAMES, evaluate
 from minretarget.retargeter import Retargeter
 from minretarget.smoothing import Smoothing
@@ -54,7 +54,7 @@ def train_variant(variant, args):
         frames = int(overrides[0].split("=")[1])
         subprocess.run([sys.executable, "-m", "training.data", "build", "--cmu", args.cmu,
                         "--out", str(data), "--only", "smrm", "--clip-frames", str(frames)],
-                       check=True)
+                       check=True, env=training_env())
     command = [sys.executable, "-m", "training.train", "smrm", "--recipe", args.recipe,
                "--init", str(DEFAULT_WEIGHTS), "--scratch", "smrm", "--data", str(data),
                "--out", str(Path(args.runs) / folder), "--threads", "1",
@@ -62,7 +62,7 @@ def train_variant(variant, args):
     for override in overrides:
         command += ["--set", override]
     print(" ".join(command), flush=True)
-    subprocess.run(command, check=True)
+    subprocess.run(command, check=True, env=training_env())
 
 
 def variant_metrics(weights, sequence, skr_joints, rig):

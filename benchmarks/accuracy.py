@@ -69,6 +69,7 @@ the motion the validation subjects lack (the networks trained on it, on other bo
 import argparse
 import functools
 import json
+import os
 import subprocess
 import sys
 import time
@@ -86,6 +87,20 @@ from minretarget.metrics import (METRIC_NAMES, crossed_feet, evaluate, foot_cont
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
+
+# `training` runs from the checkout (it is not installed): the repository root on the path
+# lets this script, and the benchmarks that import it, load training's datasets.
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(1, str(ROOT))
+
+
+def training_env():
+    """The environment for a ``python -m training...`` subprocess: the repository root first
+    on PYTHONPATH, so that it runs from any working directory."""
+    paths = [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+
 
 PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD": 0.145,
          "PA-MPVD": 0.058, "MEDL": 0.001}
@@ -507,7 +522,7 @@ def main(argv=None):
             parser.error(f"{test_dir} is absent: build it ({' '.join(build[1:])}), or add "
                          "--build")
         print(f"{test_dir} is absent: building it first", flush=True)
-        subprocess.run(build, check=True)
+        subprocess.run(build, check=True, env=training_env())
     if split != "test" and not Path(args.cmu).is_dir():
         parser.error(f"--cmu {args.cmu}: no such folder (the {split} trials are read there)")
     if split != "test":

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from reference_models import random_reference, random_stream  # noqa: E402
 
 from minretarget.cli import int_at_least  # noqa: E402

@@ -37,6 +37,7 @@ cached test bodies (``training.data.bodies``, which names them through anny).
 """
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -48,7 +49,9 @@ from accuracy import (command_line, load_measured, load_sequence, run_sequence,
 from minretarget.atomic import atomic_write
 from minretarget.metrics import (ACCELERATION_FRAMES, METRIC_NAMES, acceleration_error,
                                  procrustes_align)
-from training.data.bodies import benchmark_bodies, posed_clouds
+
+sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
+from training.data.bodies import benchmark_bodies, posed_clouds  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from reference_models import random_reference, random_stream  # noqa: E402
 
 from training.export import export_weights  # noqa: E402
