@@ -1,8 +1,12 @@
 """Ablations of SMRM training (issue 4 item 3; the paper's Tables 2 and 3): the training clip
 length (5, 10, 15, 30, 60 frames) and the rotation cycle loss (on, off).
 
-    python benchmarks/ablations.py [--train] [--runs DIR] [--recipe ablation] [--data DIR]
-                                   [--quick] [--json OUT.json] [--markdown OUT.md]
+    python benchmarks/ablations.py --report [--train] [--runs DIR] [--recipe ablation]
+                                   [--data DIR] [--quick] [--json OUT.json] [--markdown OUT.md]
+
+--report is required (refused before any training): the variants are scored on the test split,
+which is run once per release, for the report, and never selects anything
+(accuracy.TEST_SPLIT_RULE).
 
 --train first trains each variant that has no ``DIR/<variant>/weights.npz`` yet, one after the
 other (``python -m training.train smrm --init <shipped> --scratch smrm --recipe ablation
@@ -29,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from accuracy import load_sequence, select_sequences, stream, training_env, write_text
+from accuracy import (add_report_option, load_sequence, refuse_test_split, select_sequences,
+                      stream, training_env, write_text)
 from minretarget.metrics import METRIC_NAMES, evaluate
 from minretarget.retargeter import Retargeter
 from minretarget.smoothing import Smoothing
@@ -102,7 +107,9 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="accuracy.py's quick subset")
     parser.add_argument("--json", help="write the results as JSON here")
     parser.add_argument("--markdown", help="write the tables as markdown here")
+    add_report_option(parser)
     args = parser.parse_args(argv)
+    refuse_test_split(parser, args)     # before any variant is trained
     paths = {v: Path(args.runs) / folder / "weights.npz" for v, (folder, *_) in VARIANTS.items()}
     if args.train:
         for variant, path in paths.items():

@@ -1,6 +1,6 @@
 """Accuracy of the runtime on the test benchmark (../shared/DESIGN.md, "Accuracy protocol").
 
-    python benchmarks/accuracy.py [--quick | --validation | --dances] [--rows ROW ...]
+    python benchmarks/accuracy.py (--validation | --dances | --report [--quick]) [--rows ROW ...]
                                   [--weights FILE] [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
                                   [--compare OTHER.json]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]
@@ -60,9 +60,12 @@ sequences (``paired_difference``), and on how many sequences the model is better
 run over the same sequences (other weights, say: ``against_saved``); a saved run of another
 split, quick against full, or of other sequences (their names, and their lengths where known
 before loading: validation and dances) is refused before the run starts.
---quick: a fixed subset (the first 150 frames of the first two sequences of each category),
-about 3 minutes. --validation: the same rows on validation trials (held-out training
-subjects and bodies), for choosing between weights or settings without the test split.
+--report: score the test split. Without it a run of the test split (the default, or --quick)
+is refused: the test split is run once per release, for the report, and never selects
+anything; weights, settings and rows are chosen on --validation and --dances.
+--quick: a fixed subset of the test split (the first 150 frames of the first two sequences of
+each category), about 3 minutes; needs --report too. --validation: the same rows on validation
+trials (held-out training subjects and bodies), for choosing between weights or settings.
 --dances: on dance and martial-arts trials of the training split played by held-out bodies,
 the motion the validation subjects lack (the networks trained on it, on other bodies).
 """
@@ -93,6 +96,28 @@ from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(1, str(ROOT))
+
+
+# The test split chooses nothing: weights, settings and rows are chosen on validation and the
+# training dances (--validation, --dances); the test split is scored once per release, for the
+# report, and every benchmark that reads it refuses to unless told --report.
+TEST_SPLIT_RULE = ("the test split is run once per release, for the report, and never selects "
+                   "anything (weights, settings, rows): choose on --validation or --dances")
+
+
+def add_report_option(parser):
+    """Add ``--report``, the switch without which a benchmark refuses the test split."""
+    parser.add_argument("--report", action="store_true",
+                        help="score the test split: once per release, for the report only "
+                             "(it never selects anything; choose on validation)")
+
+
+def refuse_test_split(parser, args):
+    """Stop (argparse's error, exit code 2) unless ``args.report``: this run would score the
+    test split."""
+    if not args.report:
+        parser.error(f"this run scores the test split: {TEST_SPLIT_RULE}. Add --report only "
+                     "for the release's report")
 
 
 def training_env():
@@ -483,17 +508,23 @@ def main(argv=None):
                              "same sequences (other weights, say), sequence by sequence")
     parser.add_argument("--build", action="store_true",
                         help="build DIR/test first if it is absent (about 13 minutes)")
+    add_report_option(parser)
     args = parser.parse_args(argv)
     if args.from_json:
         given = [option for option, value in (
             ("--quick", args.quick), ("--validation", args.validation),
             ("--dances", args.dances), ("--weights", args.weights),
-            ("--rows", args.rows != list(ROWS)), ("--build", args.build)) if value]
+            ("--rows", args.rows != list(ROWS)), ("--build", args.build),
+            ("--report", args.report)) if value]
         if given:
             parser.error(f"--from-json prints a saved run: {', '.join(given)} would not apply")
+    elif args.report and (args.validation or args.dances):
+        parser.error("--report is for the test split; --validation and --dances need none")
     saved = load_results(args.from_json) if args.from_json else None
     split = (saved["split"] if saved else "validation" if args.validation
              else "training dances" if args.dances else "test")
+    if split == "test" and not saved:       # refused before anything is built or read
+        refuse_test_split(parser, args)
     quick = saved.get("quick", False) if saved else args.quick
     other = None
     if args.compare:        # refused now, not after a run of many minutes

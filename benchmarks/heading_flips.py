@@ -1,6 +1,9 @@
 """How often the source skeleton faces the wrong way or has its legs swapped, on the test set.
 
-    python benchmarks/heading_flips.py [--data DIR] [--weights FILE] [--json OUT.json]
+    python benchmarks/heading_flips.py --report [--data DIR] [--weights FILE] [--json OUT.json]
+
+--report is required: the counts are of the test split, which is run once per release, for the
+report, and never selects anything (accuracy.TEST_SPLIT_RULE).
 
 A point cloud does not say which way its body faces, and SKR sometimes reads a body backwards:
 its skeleton then turns half round about the vertical between two frames, the legs and arms
@@ -35,7 +38,8 @@ from minretarget.metrics import FOOT_JOINTS
 from minretarget.retargeter import Retargeter
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import command_line, load_measured, load_sequence  # noqa: E402
+from accuracy import (add_report_option, command_line, load_measured,  # noqa: E402
+                      load_sequence, refuse_test_split)
 
 FLIP = np.pi / 2     # radians off the truth's heading that count as facing the wrong way
 TOES = [JOINT_INDEX[name] for name in FOOT_JOINTS]
@@ -112,7 +116,9 @@ def main(argv=None):
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--json", help="write the counts as JSON here")
+    add_report_option(parser)
     args = parser.parse_args(argv)
+    refuse_test_split(parser, args)
     paths = sorted((Path(args.data) / "test").glob("*.npz"))
     if not paths:
         parser.error(f"no test sequences in {Path(args.data) / 'test'}: build them with "

@@ -1,6 +1,9 @@
 """Look at the result: test walks and dances retargeted onto a heavy and a slim target.
 
-    python benchmarks/renders.py [--weights FILE] [--data DIR] [--out DIR]
+    python benchmarks/renders.py --report [--weights FILE] [--data DIR] [--out DIR]
+
+--report is required: the pictures and their numbers are of the test split, which is run once
+per release, for the report, and never selects anything (accuracy.TEST_SPLIT_RULE).
 
 Four test sequences of DIR/test (built data, never rebuilt here), each on the target body the
 benchmark pairs it with (data/manifest.json, "test_pairs"): the walks 08_01 (slim) and 08_02
@@ -44,8 +47,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import (CONTACT_HEIGHT, command_line, load_measured,  # noqa: E402
-                      load_sequence, sequence_metrics, write_text)
+from accuracy import (CONTACT_HEIGHT, add_report_option, command_line,  # noqa: E402
+                      load_measured, load_sequence, refuse_test_split, sequence_metrics,
+                      write_text)
 
 from minretarget.atomic import atomic_write  # noqa: E402
 from minretarget.conventions import FPS, JOINT_INDEX, JOINT_NAMES, PARENTS, UP_AXIS  # noqa: E402
@@ -160,7 +164,9 @@ def main(argv=None):
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
     parser.add_argument("--data", default="data", help="built data directory (uses DIR/test)")
     parser.add_argument("--out", default="benchmarks/results/renders", help="output folder")
+    add_report_option(parser)
     args = parser.parse_args(argv)
+    refuse_test_split(parser, args)
     out = Path(args.out)
     paths = [Path(args.data) / "test" / f"{name}.npz" for name, _ in SEQUENCES]
     missing = [str(path) for path in paths if not path.is_file()]

@@ -1,8 +1,12 @@
 """Robustness of the runtime to its input: accuracy against source point count, point noise and
 dropped frames (issue 4, item 4).
 
-    OMP_NUM_THREADS=1 python benchmarks/robustness.py [--weights FILE] [--data DIR] [--out DIR]
-                                                      [--json OUT.json] [--frames N] [--seed S]
+    OMP_NUM_THREADS=1 python benchmarks/robustness.py --report [--weights FILE] [--data DIR]
+                                                      [--out DIR] [--json OUT.json] [--frames N]
+                                                      [--seed S]
+
+--report is required: the sweep scores test sequences, and the test split is run once per
+release, for the report, and never selects anything (accuracy.TEST_SPLIT_RULE).
 
 (OMP_NUM_THREADS=1: with another process on one of the two cores, NumPy's two BLAS threads
 wait on each other and the sweep takes twice as long.)
@@ -44,8 +48,9 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from accuracy import (command_line, load_measured, load_sequence, run_sequence,
-                      select_sequences, sequence_metrics, write_text)
+from accuracy import (add_report_option, command_line, load_measured, load_sequence,
+                      refuse_test_split, run_sequence, select_sequences, sequence_metrics,
+                      write_text)
 from minretarget.atomic import atomic_write
 from minretarget.metrics import (ACCELERATION_FRAMES, METRIC_NAMES, acceleration_error,
                                  procrustes_align)
@@ -262,12 +267,14 @@ def main(argv=None):
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                         help="first frames of each sequence")
     parser.add_argument("--seed", type=int, default=0, help="seed of every perturbation")
+    add_report_option(parser)
     args = parser.parse_args(argv)
     fewest_kept = len(drop_frames(args.frames, max(DROP_FRACTIONS), np.random.default_rng()))
     if fewest_kept < ACCELERATION_FRAMES:        # refused now, not after minutes
         parser.error(f"--frames {args.frames}: dropping {max(DROP_FRACTIONS):.0%} of them "
                      f"leaves {fewest_kept}, and the metrics need at least "
                      f"{ACCELERATION_FRAMES} (use 6 or more)")
+    refuse_test_split(parser, args)
     started = time.perf_counter()
     weights, record = load_measured(args.weights)
     paths, _ = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")), quick=True)

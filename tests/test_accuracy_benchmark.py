@@ -113,7 +113,8 @@ def test_compare_refuses_a_run_of_other_sequences_before_loading_any(tmp_path, c
     other = tmp_path / "other.json"
     other.write_text(json.dumps({"per_sequence": results([0.0, 0.0], [3, 1]), "split": "test"}))
     with pytest.raises(SystemExit) as stop:
-        accuracy.main(["--data", str(tmp_path), "--compare", str(other), "--rows", "model"])
+        accuracy.main(["--data", str(tmp_path), "--compare", str(other), "--rows", "model",
+                       "--report"])
     assert stop.value.code == 2
     assert "--compare: sequence 0 is a (? frames) here but s0 (3 frames)" in \
         capsys.readouterr().err
@@ -141,7 +142,7 @@ def test_bad_runs_are_refused_at_once(tmp_path, capsys):
     """No data: refused with the build command, not built (unless --build); a saved run that
     is not one, and --from-json with options that would not apply: refused by name."""
     with pytest.raises(SystemExit):
-        accuracy.main(["--data", str(tmp_path / "nodata"), "--quick"])
+        accuracy.main(["--data", str(tmp_path / "nodata"), "--quick", "--report"])
     err = capsys.readouterr().err
     assert "nodata/test is absent: build it (-m training.data build" in err and "--build" in err
     assert not (tmp_path / "nodata").exists()
@@ -195,3 +196,41 @@ def test_skeleton_figures_are_summed_and_pooled(tmp_path):
     assert rows["ground truth"]["skating_ratio"] == pytest.approx(2 / 8)
     assert rows["ground truth"]["toe_speed"] == pytest.approx(0.25)
     assert rows["model"]["toe_speed"] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("argv", [[], ["--quick"], ["--rows", "model", "analytic"],
+                                  ["--build"]])
+def test_the_test_split_is_refused_without_report(tmp_path, capsys, argv):
+    """A run of the test split without --report stops at once (nothing built or read) and
+    says why: the test split is run once per release, for the report, never to choose."""
+    with pytest.raises(SystemExit) as stop:
+        accuracy.main(["--data", str(tmp_path / "nodata"), *argv])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--report" in err
+    assert "run once per release, for the report, and never selects anything" in err
+    assert not (tmp_path / "nodata").exists()
+
+
+def test_report_applies_to_the_test_split_only(tmp_path, capsys):
+    for split in ("--validation", "--dances"):
+        with pytest.raises(SystemExit) as stop:
+            accuracy.main([split, "--report", "--cmu", str(tmp_path)])
+        assert stop.value.code == 2 and "--report is for the test split" in \
+            capsys.readouterr().err
+    saved = tmp_path / "saved.json"           # a saved test run prints without --report
+    saved.write_text(json.dumps({"per_sequence": results([0.0], [3]), "split": "test"}))
+    accuracy.main(["--from-json", str(saved)])
+    with pytest.raises(SystemExit):
+        accuracy.main(["--from-json", str(saved), "--report"])
+    assert "--report would not apply" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["robustness", "ablations", "heading_flips", "renders"])
+def test_every_benchmark_of_the_test_split_wants_report(name, tmp_path, capsys):
+    """The other benchmarks that read DIR/test refuse without --report, before any work."""
+    import importlib
+    module = importlib.import_module(name)
+    with pytest.raises(SystemExit) as stop:
+        module.main(["--data", str(tmp_path / "nodata")])
+    assert stop.value.code == 2
+    assert accuracy.TEST_SPLIT_RULE in capsys.readouterr().err

@@ -24,7 +24,7 @@ def test_a_failed_run_leaves_the_pictures_as_they_were(tmp_path, monkeypatch, ca
     renders.json stay a matching set, and no staging folder is left."""
     out = tmp_path / "out"
     with pytest.raises(SystemExit):
-        renders.main(["--data", str(tmp_path / "nodata"), "--out", str(out)])
+        renders.main(["--data", str(tmp_path / "nodata"), "--out", str(out), "--report"])
     assert "build the test data first" in capsys.readouterr().err and not out.exists()
     (tmp_path / "data" / "test").mkdir(parents=True)
     for name, _ in renders.SEQUENCES:
@@ -38,7 +38,7 @@ def test_a_failed_run_leaves_the_pictures_as_they_were(tmp_path, monkeypatch, ca
         raise ValueError("indian_04: damaged")
     monkeypatch.setattr(renders, "draw", fails_midway)
     with pytest.raises(ValueError, match="indian_04"):
-        renders.main(["--data", str(tmp_path / "data"), "--out", str(out)])
+        renders.main(["--data", str(tmp_path / "data"), "--out", str(out), "--report"])
     assert sorted(p.name for p in out.iterdir()) == ["old.png", "renders.json"]
 
 
@@ -51,6 +51,6 @@ def test_a_run_moves_its_pictures_in(tmp_path, monkeypatch):
         (staging / "new.png").write_bytes(b"a picture")
         return [{"png": str(out / "new.png")}], 1.0
     monkeypatch.setattr(renders, "draw", draws)
-    renders.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "out")])
+    renders.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"), "--report"])
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["new.png", "renders.json"]
     assert (tmp_path / "out" / "new.png").read_bytes() == b"a picture"

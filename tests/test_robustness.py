@@ -133,5 +133,5 @@ def test_too_few_frames_for_the_drop_sweep_is_refused_at_once(frames, capsys):
 def test_six_frames_pass_the_check():
     """6 frames keep 3 at the largest drop: the run goes on, and stops at the missing data."""
     with pytest.raises(SystemExit) as exit_info:
-        robustness.main(["--frames", "6", "--data", "/nonexistent"])
+        robustness.main(["--frames", "6", "--data", "/nonexistent", "--report"])
     assert "no test sequence" in str(exit_info.value.code)
