@@ -180,6 +180,15 @@ def weights_record(path, weights):
             "weights_metadata": weights.metadata}
 
 
+def weights_note(record):
+    """One line naming the weights a run measured and the splits that chose them (their
+    metadata's ``selected_on``, written by training.export) from a ``weights_record`` or a
+    saved run."""
+    chosen = (record.get("weights_metadata") or {}).get("selected_on")
+    return (f"Weights: {record.get('weights', 'not recorded')}; chosen on: "
+            f"{', '.join(chosen) if chosen else 'not recorded in their metadata'}")
+
+
 def load_sequence(path, frames=None):
     with np.load(path, allow_pickle=False) as data:
         return {key: data[key][:frames] if data[key].ndim and key in (
@@ -536,7 +545,7 @@ def main(argv=None):
         other = compared
     if saved:
         summary = summarize(saved["per_sequence"], saved["split"], other, args.compare)
-        text = summary.pop("text")
+        text = summary.pop("text") + "\n\n" + weights_note(saved)
         print(text)
         if args.markdown:
             write_text(args.markdown, text + "\n")
@@ -587,7 +596,7 @@ def main(argv=None):
 
     seconds = time.perf_counter() - started
     summary = summarize(results, split, other, args.compare)
-    text = summary.pop("text")
+    text = summary.pop("text") + "\n\n" + weights_note(record)
     total_frames = summary["frames"]
     print(text)
     print(f"\n{total_frames} frames in {seconds:.0f} s; model (all stages; SKR and refiner "

@@ -234,3 +234,17 @@ def test_every_benchmark_of_the_test_split_wants_report(name, tmp_path, capsys):
         module.main(["--data", str(tmp_path / "nodata")])
     assert stop.value.code == 2
     assert accuracy.TEST_SPLIT_RULE in capsys.readouterr().err
+
+
+def test_the_weights_note_names_the_splits_that_chose_them(tmp_path, capsys):
+    record = {"weights": "w.npz", "weights_metadata": {"selected_on": ["validation",
+                                                                       "training dances"]}}
+    assert accuracy.weights_note(record) == \
+        "Weights: w.npz; chosen on: validation, training dances"
+    assert accuracy.weights_note({"weights": "old.npz", "weights_metadata": {}}) == \
+        "Weights: old.npz; chosen on: not recorded in their metadata"
+    saved = tmp_path / "saved.json"
+    saved.write_text(json.dumps({"per_sequence": results([0.0], [3]), "split": "validation",
+                                 **record}))
+    accuracy.main(["--from-json", str(saved)])
+    assert "Weights: w.npz; chosen on: validation, training dances" in capsys.readouterr().out

@@ -173,6 +173,7 @@ def test_fit_command_adds_the_model_to_a_weights_file(tmp_path, monkeypatch):
     assert weights.config.rest_pose and weights.rest_pose.directions.shape == (
         NUM_FEATURES, 3 * NUM_BONES)
     assert weights.metadata["recipe"] == "tiny" and weights.metadata["rest_pose"]["bodies"] == 40
+    assert weights.metadata["selected_on"] == ["validation", "training dances"]
     np.testing.assert_allclose(
         weights.rest_pose.directions,
         fit_rest_pose(synthetic_bodies(40, seed=8), noise=0.05).directions, atol=1e-6)

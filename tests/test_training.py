@@ -106,6 +106,8 @@ def test_all_stages_train_log_and_export_loadable_weights(run):
         assert (out / f"{stage}.png").stat().st_size > 0
     retargeter = Retargeter.from_weights(out / "weights.npz")
     assert retargeter.weights.metadata["recipe"]["name"] == "tiny"
+    # the splits that may choose them, never the test split
+    assert retargeter.weights.metadata["selected_on"] == ["validation", "training dances"]
     assert retargeter.weights.config.smrm_layers == 1
     assert retargeter.weights.refine is not None and retargeter.weights.denoise is not None
     retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))

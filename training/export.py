@@ -4,6 +4,9 @@ Batch norm (eval statistics) is folded into the preceding linear layer, and ever
 weight is transposed to the runtime's (in, out) layout. ``import_weights`` goes the other way,
 so training can start from an exported file (the shipped weights, say): its batch norms come
 back folded, as ``nn.Identity``.
+
+Every exported file's metadata says which splits may choose it (``selected_on``,
+``SELECTED_ON``): validation and the training dances, never the test split.
 """
 import dataclasses
 import numpy as np
@@ -16,6 +19,19 @@ from minretarget.rest_pose import RestPoseWeights
 from minretarget.skr import PointNetWeights, SKRWeights
 from minretarget.smrm import SMRMWeights
 from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
+
+
+# The splits that choose weights: between checkpoints, settings and candidates, and whether a
+# candidate ships (docs/training.md, "How a candidate is chosen"). The test split is not among
+# them: it is scored once per release, for the report (the benchmarks refuse it without
+# --report). Written into the metadata of every exported file as ``selected_on``.
+SELECTED_ON = ("validation", "training dances")
+
+
+def with_selection(metadata):
+    """A copy of ``metadata`` (a dict, or None) with ``selected_on``: the splits the file
+    may be chosen on (``SELECTED_ON``), replacing any an ``--init`` file carried."""
+    return {**(metadata or {}), "selected_on": list(SELECTED_ON)}
 
 
 def _array(tensor):
@@ -92,7 +108,7 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
                                                                    _dense(denoise.head))
     rest_pose = (RestPoseWeights(_array(smrm.rest_directions)) if smrm.config.rest_pose
                  else None)
-    weights = Weights(config, skr_weights, smrm_weights, skin_weights, dict(metadata or {}),
+    weights = Weights(config, skr_weights, smrm_weights, skin_weights, with_selection(metadata),
                       refine_weights, denoise_weights, rest_pose)
     # Round-trip through the loader's checks so a wrong export fails here, not at load.
     return weights_from_arrays(flatten_weights(weights), source="exported weights")

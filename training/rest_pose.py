@@ -27,6 +27,7 @@ import torch
 from minretarget.conventions import PARENTS
 from minretarget.rest_pose import RestPoseWeights, bone_lengths, rest_pose_features
 from minretarget.weights import load_weights, save_weights
+from training.export import with_selection
 from training.train import current_commit
 
 RIDGE = 1e-4
@@ -97,10 +98,10 @@ def main(argv=None):
     if not weights.config.smrm_analytic_prior:
         parser.error(f"{args.init}: its SMRM has no analytic prior for the rest poses to move")
     model = fit_rest_pose(training_tpose_joints(args.bodies), args.noise, seed=args.seed)
-    metadata = dict(weights.metadata, rest_pose={
+    metadata = with_selection(dict(weights.metadata, rest_pose={
         "bodies": args.bodies, "noise": args.noise, "copies": COPIES, "ridge": RIDGE,
         "seed": args.seed, "fitted_on": "sampled training bodies (training.data.bodies)",
-        "commit": current_commit()})
+        "commit": current_commit()}))
     weights = weights._replace(config=dataclasses.replace(weights.config, rest_pose=True),
                                rest_pose=model, metadata=metadata)
     args.out.parent.mkdir(parents=True, exist_ok=True)
