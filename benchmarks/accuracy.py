@@ -27,10 +27,19 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
                          SKR's source joints as they come (no refiner, no facing check, no
                          smoothing, no denoiser), SMRM's plain prior, its rotations as they
                          come
-    analytic             the model's (smoothed, denoised) source bones, each target bone
-                         rotated onto its source bone (minretarget.analytic), FK, LBS with
-                         SKIN weights: no SMRM
-    analytic, mirrored source  the same on the mirrored source row's skeletons
+    analytic             the model without SMRM's networks, every other stage kept: the
+                         model's (smoothed, denoised) source skeletons; per frame SMRM's
+                         analytic prior as the model computes it (each bone of the target's
+                         T-pose, turned by the rest-pose model, rotated onto its source bone:
+                         minretarget.analytic, minretarget.rest_pose), the root scaled as
+                         SMRM scales it, the model's foot lock (minretarget.contacts), FK,
+                         LBS with SKIN weights (``analytic_full``). The rest-pose model is
+                         fitted, but it is part of the prior the model gets, so this row has
+                         it: ``model - analytic`` is SMRM's own effect
+    analytic, plain      the analytic row of earlier runs, kept comparable: the same source
+                         skeletons, each target T-pose bone rotated onto its source bone, no
+                         rest-pose model, no foot lock (``analytic_plain``)
+    analytic, mirrored source  ``analytic`` on the mirrored source row's skeletons
     oracle source        ground-truth source joints instead of SKR (not smoothed or denoised;
                          foot lock on)
     oracle target        ground-truth target T-pose joints and skinning weights instead of
@@ -42,7 +51,7 @@ Only when named in --rows:
                          minretarget.fit: a body model tracked in every cloud after SKR, the
                          refiner and the facing check), no smoothing and no denoiser (both
                          learned or tuned on SKR's errors, not the fit's)
-    analytic, source fit  the analytic baseline on that row's source skeletons
+    analytic, source fit  ``analytic`` on that row's source skeletons
     model, foot leash X m  the model with the foot lock's leash (``FootLock.max_offset``, the
                          command line's --foot-leash) X instead of 1 cm: planted toes held
                          firmer, for X in ``FOOT_LEASHES``
@@ -51,8 +60,8 @@ horizontal speed of the toes over the steps where the ground truth's toes touch 
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
 If DIR/test is absent, the run stops and says how to build it; with --build it builds it
 first (python -m training.data build --only test, about 13 minutes).
-A third compares the model with the analytic baseline, sequence by sequence (and the mirrored
-source rows likewise, ``PAIRS``): for each metric the frame-weighted difference (model minus
+A third compares the model with the analytic baseline, sequence by sequence (and with the
+plain one, and the mirrored source rows likewise, ``PAIRS``): for each metric the frame-weighted difference (model minus
 analytic; below zero, the model is better), its 95 % interval from a bootstrap over the
 sequences (``paired_difference``), and on how many sequences the model is better.
 --from-json OUT.json prints every table again from a saved run, computing nothing.
@@ -77,16 +86,18 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from minretarget.analytic import analytic_rotations
 from minretarget.atomic import atomic_write
-from minretarget.contacts import FootLock
+from minretarget.contacts import FootLock, plant_feet
 from minretarget.fit import FitSettings
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
 from minretarget.metrics import (METRIC_NAMES, crossed_feet, evaluate, foot_contacts,
                                  foot_speeds, joint_errors, skating_steps)
+from minretarget.rest_pose import bone_lengths, prior_reference
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
@@ -131,7 +142,8 @@ PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD
          "PA-MPVD": 0.058, "MEDL": 0.001}
 ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock",
         "model, no rest pose", "model, no facing check", "model, mirrored source",
-        "model, paper pipeline", "analytic", "analytic, mirrored source", "oracle source",
+        "model, paper pipeline", "analytic", "analytic, plain", "analytic, mirrored source",
+        "oracle source",
         "oracle target", "oracle both")
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
 LEASH_ROWS = tuple(f"model, foot leash {leash:g} m" for leash in FOOT_LEASHES)
@@ -140,7 +152,8 @@ CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as t
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
 # Paired comparisons, sequence by sequence, printed when a run has both rows.
-PAIRS = (("model", "analytic"), ("model, mirrored source", "analytic, mirrored source"),
+PAIRS = (("model", "analytic"), ("model", "analytic, plain"),
+         ("model, mirrored source", "analytic, mirrored source"),
          ("model, source fit", "analytic, source fit"), ("model, source fit", "model"))
 
 
@@ -203,6 +216,72 @@ def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
     return joints, linear_blend_skinning(points, skin_weights, transforms)
 
 
+class FeetState(NamedTuple):
+    """What ``contacts.plant_feet`` carries from frame to frame (the foot fields of
+    ``smrm.MotionState``), for the analytic baseline, which has no SMRM state."""
+    frames_seen: int
+    toe_filtered: np.ndarray     # (2, 3) float32
+    toe_anchor: np.ndarray       # (2, 3) float32
+    foot_offset: np.ndarray      # (2, 3) float32
+    feet_planted: np.ndarray     # (2,) bool
+
+
+def analytic_root(source_joints, tpose_joints):
+    """(T, J, 3) source skeletons, the target's (J, 3) T-pose -> (T, 3) roots: each source root
+    scaled by the target's leg length over the mean source leg length so far, as SMRM scales
+    it (``smrm`` step 5, without SMRM's learned offset)."""
+    legs = np.cumsum(leg_length(source_joints)) / np.arange(1, len(source_joints) + 1)
+    return (leg_length(tpose_joints) / legs)[:, None] * source_joints[:, 0]
+
+
+def analytic_plain(source_joints, target):
+    """The plain analytic baseline (row ``analytic, plain``; the ``analytic`` row of runs
+    before it had every non-learned stage): each target T-pose bone turned onto its source
+    bone (``minretarget.analytic``), the root scaled (``analytic_root``), FK and LBS on the
+    model's target rig; no rest-pose model, no foot lock.
+    (T, J, 3) source skeletons, a ``Target`` -> joints (T, J, 3), vertices (T, V, 3)."""
+    return pose_with_rig(analytic_rotations(source_joints, target.tpose_joints),
+                         analytic_root(source_joints, target.tpose_joints),
+                         target.tpose_joints, target.points, target.skin_weights)
+
+
+def analytic_full(source_joints, target, rest_pose=None, foot_lock=None):
+    """The analytic baseline with every stage the model has but SMRM's networks (row
+    ``analytic``), so that ``model - analytic`` is SMRM's own effect: per frame, the
+    rotations of SMRM's analytic prior, i.e. each bone of the prior's reference skeleton
+    turned onto its source bone (``minretarget.analytic``), where the reference is the
+    target's T-pose turned by the rest-pose model (``rest_pose.prior_reference``, from the
+    mean source bone lengths so far, as SMRM computes it; the target's T-pose itself when
+    ``rest_pose`` is None); the root scaled as SMRM scales it (``analytic_root``); then the
+    foot lock (``contacts.plant_feet``; ``foot_lock`` None: off), FK and LBS on the target
+    rig. The rest-pose model is fitted (``training.rest_pose``), not a part of SMRM's
+    networks, but it is a part of the prior the model gets, so this row gets it too.
+
+    Args:
+        source_joints: (T, J, 3) float32 the source skeletons SMRM saw (smoothed,
+            denoised), metres.
+        target: the model's ``Target`` (its points, T-pose joints, skinning weights).
+        rest_pose: ``RestPoseWeights`` the model's prior uses, or None (the plain prior).
+        foot_lock: ``FootLock`` the model uses, or None.
+    Returns:
+        joints (T, J, 3), vertices (T, V, 3), float32.
+    """
+    tpose = target.tpose_joints
+    lengths = np.cumsum(bone_lengths(source_joints), axis=0, dtype=np.float64)
+    lengths /= np.arange(1, len(source_joints) + 1)[:, None]          # (T, B) means so far
+    rotations = (analytic_rotations(source_joints, tpose) if rest_pose is None else
+                 np.stack([analytic_rotations(joints, prior_reference(rest_pose, tpose, mean))
+                           for joints, mean in zip(source_joints,
+                                                   lengths.astype(np.float32))]))
+    root = analytic_root(source_joints, tpose).astype(np.float32)
+    feet = np.zeros((2, 3), np.float32)
+    state = FeetState(0, feet, feet.copy(), feet.copy(), np.zeros(2, bool))
+    for t in range(len(rotations)):       # the lock tracks the toes even when off
+        state = state._replace(frames_seen=t + 1)
+        rotations[t], state = plant_feet(rotations[t], root[t], tpose, state, foot_lock)
+    return pose_with_rig(rotations, root, tpose, target.points, target.skin_weights)
+
+
 def stream(retargeter, source_joints, clouds=None):
     """Run SMRM, FK and LBS online over known source joints (found in ``clouds``, if given:
     the facing check reads those again) -> joints, vertices (T, ...)."""
@@ -259,15 +338,12 @@ def run_sequence(weights, sequence, wanted=ROWS):
     model = stacked(frames)
     target = learned.target
 
-    def analytic(frames):
+    def analytic(frames, retargeter):
         """The analytic baseline on the source skeletons SMRM saw in ``frames`` (smoothed and
-        denoised) and the model's target rig: rotations from bone alignment, the root scaled
-        like SMRM's (by the mean source leg length so far)."""
-        joints = np.stack([f.source_joints for f in frames])
-        legs = np.cumsum(leg_length(joints)) / np.arange(1, len(joints) + 1)
-        root = (leg_length(target.tpose_joints) / legs)[:, None] * joints[:, 0]
-        return pose_with_rig(analytic_rotations(joints, target.tpose_joints), root,
-                             target.tpose_joints, target.points, target.skin_weights)
+        denoised) with what ``retargeter`` (the row's model) gives SMRM's prior and after it:
+        its rest-pose model and its foot lock (``analytic_full``)."""
+        return analytic_full(np.stack([f.source_joints for f in frames]), target,
+                             retargeter.rest_pose_model, retargeter.foot_lock)
 
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
@@ -275,6 +351,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
                                              for joints, cloud in zip(raw_joints, clouds)])
     # The source skeleton SMRM saw, for the rows that keep it.
     seen = {"model": lambda: frames, "analytic": lambda: frames,
+            "analytic, plain": lambda: frames,
             "model, mirrored source": mirrored_frames,
             "analytic, mirrored source": mirrored_frames,
             "model, source fit": fitted_frames, "analytic, source fit": fitted_frames}
@@ -286,10 +363,12 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "model, no facing check": lambda: stream(no_facing_check, raw_joints),
             "model, mirrored source": lambda: stacked(mirrored_frames()),
             "model, paper pipeline": lambda: stream(paper, skr_alone()),
-            "analytic": lambda: analytic(frames),
-            "analytic, mirrored source": lambda: analytic(mirrored_frames()),
+            "analytic": lambda: analytic(frames, learned),
+            "analytic, plain": lambda: analytic_plain(
+                np.stack([f.source_joints for f in frames]), target),
+            "analytic, mirrored source": lambda: analytic(mirrored_frames(), mirrored),
             "model, source fit": lambda: stacked(fitted_frames()),
-            "analytic, source fit": lambda: analytic(fitted_frames()),
+            "analytic, source fit": lambda: analytic(fitted_frames(), fitted),
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
             "oracle target": lambda: stream(oracle_rig, raw_joints, clouds),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),

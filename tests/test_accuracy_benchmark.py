@@ -4,9 +4,15 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from conftest import with_rest_pose
+from minretarget.contacts import FootLock
+from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.metrics import METRIC_NAMES
+from minretarget.nn import Dense
+from minretarget.retargeter import Retargeter, Target
 from minretarget.weights import checksum_path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -248,3 +254,80 @@ def test_the_weights_note_names_the_splits_that_chose_them(tmp_path, capsys):
                                  **record}))
     accuracy.main(["--from-json", str(saved)])
     assert "Weights: w.npz; chosen on: validation, training dances" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- analytic rows
+
+def standing_stream(frames=40, seed=0):
+    """(T, J, 3) a person standing still, every joint jittering by a few millimetres a frame
+    (the way SKR's skeletons do): toes that the foot lock plants."""
+    from test_contacts import human_tpose
+    rng = np.random.default_rng(seed)
+    return (human_tpose()[None] + rng.normal(0, 0.004, (frames, NUM_JOINTS, 3))
+            ).astype(np.float32)
+
+
+def simple_target(scale=1.1, seed=1):
+    """A target rig: a scaled adult T-pose, points about it, each bound to its nearest joint."""
+    from test_contacts import human_tpose
+    tpose = human_tpose() * np.float32(scale)
+    points = (tpose[np.random.default_rng(seed).integers(NUM_JOINTS, size=300)]
+              + np.random.default_rng(seed + 1).normal(0, 0.03, (300, 3))).astype(np.float32)
+    nearest = np.linalg.norm(points[:, None] - tpose[None], axis=-1).argmin(axis=1)
+    return Target(points, None, tpose, np.eye(NUM_JOINTS, dtype=np.float32)[nearest])
+
+
+def test_the_analytic_row_without_rest_pose_or_foot_lock_is_the_plain_row():
+    joints, target = standing_stream(), simple_target()
+    full = accuracy.analytic_full(joints, target, rest_pose=None, foot_lock=None)
+    plain = accuracy.analytic_plain(joints, target)
+    for a, b in zip(full, plain):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_foot_lock_holds_the_analytic_rows_feet_and_moves_only_the_legs():
+    joints, target = standing_stream(), simple_target()
+    locked, _ = accuracy.analytic_full(joints, target, foot_lock=FootLock())
+    free, _ = accuracy.analytic_full(joints, target, foot_lock=None)
+    toes = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
+    moved = [JOINT_INDEX[f"{side}_{name}"] for side in ("left", "right")
+             for name in ("knee", "ankle", "foot")]
+    others = [j for j in range(NUM_JOINTS) if j not in moved]
+    np.testing.assert_array_equal(locked[:, others], free[:, others])
+    assert np.abs(locked[:, moved] - free[:, moved]).max() > 1e-3
+
+    def ground_speed(joints):          # horizontal toe travel per frame, metres
+        return np.linalg.norm(np.diff(joints[:, toes][..., [0, 2]], axis=0), axis=-1).mean()
+    assert ground_speed(locked) < 0.5 * ground_speed(free)
+
+
+def test_the_analytic_row_is_the_model_with_smrms_networks_turned_to_identity(tiny_weights,
+                                                                              tiny_stream):
+    """SMRM whose heads answer no correction (identity quaternions, no root offset) on top of
+    its analytic prior with the rest-pose model, then the foot lock: the model's frames are
+    the analytic row's, computed independently from the source skeletons SMRM saw."""
+    weights = with_rest_pose(tiny_weights)
+    heads = weights.smrm
+    identity = np.tile(np.float32([1, 0, 0, 0]), NUM_JOINTS)
+    weights = weights._replace(smrm=heads._replace(
+        rotation_head=Dense(np.zeros_like(heads.rotation_head.weight), identity),
+        root_head=Dense(np.zeros_like(heads.root_head.weight),
+                        np.zeros_like(heads.root_head.bias))))
+    retargeter = Retargeter(weights, warn=False)
+    assert retargeter.rest_pose_model is not None and retargeter.foot_lock is not None
+    target_points, _, _ = tiny_stream
+    retargeter.set_target(target_points)
+    skeletons = standing_stream(30) * np.float32(0.9)
+    frames = [retargeter.step_skeleton(joints) for joints in skeletons]
+    seen = np.stack([f.source_joints for f in frames])
+    joints, vertices = accuracy.analytic_full(seen, retargeter.target,
+                                              retargeter.rest_pose_model, retargeter.foot_lock)
+    np.testing.assert_allclose(joints, np.stack([f.joints for f in frames]), atol=1e-4)
+    np.testing.assert_allclose(vertices, np.stack([f.vertices for f in frames]), atol=1e-4)
+    plain, _ = accuracy.analytic_plain(seen, retargeter.target)
+    assert np.abs(plain - joints).max() > 1e-3        # the rest pose and the lock did move it
+
+
+def test_the_analytic_rows_are_listed_and_paired():
+    assert {"analytic", "analytic, plain"} <= set(accuracy.ROWS)
+    assert {("model", "analytic"), ("model", "analytic, plain")} <= set(accuracy.PAIRS)
