@@ -10,8 +10,8 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    fixed pose the posed points are linear in them: one Gauss-Newton step on every frame kept
    so far, after each frame's pose, then ``settle_rounds`` rounds of every kept frame's pose
    and the shape after the last); then they are kept, so bone lengths are constant over the
-   rest of the stream. The calibration is the fit's slow part: its frames cost more each
-   (the last one seconds), the frames after it 10-20 ms.
+   rest of the stream. The calibration is the fit's slow part: each of its frames steps the
+   shape on all the frames kept so far, and the last one settles them all.
 2. Pose. ``iterations`` Gauss-Newton steps (damped, each joint's turn capped) on the root
    translation and one world-frame rotation vector per joint (which turns the joint's subtree
    about it), minimising robust (Geman-McClure) point-to-plane distances from each cloud
@@ -36,7 +36,7 @@ import numpy as np
 from ._jit import kernel
 from .analytic import analytic_rotations
 from .conventions import NUM_JOINTS, PARENTS
-from .nearest import build_grid, nearest
+from .nearest import _build_grid_kernel, _nearest_kernel, build_grid, nearest
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
                          quaternion_to_matrix)
 from .validation import as_float32_array
@@ -285,6 +285,183 @@ def _apply_step_kernel(local, rotations, step, parents, out):
         _quaternion_to_matrix_one(quaternion, out[j])
 
 
+@kernel
+def _pull_normal_equations_kernel(joints, goal, weight, parents, hessian, gradient):
+    """The pull of the joints (J, 3) towards ``goal`` (J, 3) with ``weight`` (spread over the
+    joints), added to the normal equations: joint k moves by t + sum over its strict ancestors
+    j of d_j x (p_k - p_j), so its rows are [I, -skew(p_k - p_j), ...]."""
+    scale = weight / joints.shape[0]                     # the rows' square: sqrt(w / J)^2
+    blocks = np.empty((joints.shape[0], 3, 3))           # the joint's 3 x 3 block per column
+    columns = np.empty(joints.shape[0], np.int64)
+    for k in range(joints.shape[0]):
+        count = 1
+        columns[0] = 0                                   # the translation: identity
+        blocks[0] = 0.0
+        for a in range(3):
+            blocks[0, a, a] = 1.0
+        j = parents[k]
+        while j >= 0:
+            l0, l1, l2 = (joints[k, 0] - joints[j, 0], joints[k, 1] - joints[j, 1],
+                          joints[k, 2] - joints[j, 2])
+            b = blocks[count]                            # -skew(l): d x l = -skew(l) d
+            b[0, 0], b[0, 1], b[0, 2] = 0.0, l2, -l1
+            b[1, 0], b[1, 1], b[1, 2] = -l2, 0.0, l0
+            b[2, 0], b[2, 1], b[2, 2] = l1, -l0, 0.0
+            columns[count] = 1 + j
+            count += 1
+            j = parents[j]
+        for u in range(count):
+            a = 3 * columns[u]
+            for x in range(3):
+                for r in range(3):
+                    gradient[a + x] += scale * blocks[u, r, x] * (joints[k, r] - goal[k, r])
+            for v in range(count):
+                b = 3 * columns[v]
+                for x in range(3):
+                    for y in range(3):
+                        total = 0.0
+                        for r in range(3):
+                            total += blocks[u, r, x] * blocks[v, r, y]
+                        hessian[a + x, b + y] += scale * total
+
+
+@kernel
+def _clamp_step_kernel(step):
+    """Each joint's turn to at most MAX_TURN and the root's shift to at most MAX_SHIFT, in
+    place."""
+    for block in range(step.shape[0] // 3):
+        limit = MAX_SHIFT if block == 0 else MAX_TURN
+        norm = np.sqrt(step[3 * block] ** 2 + step[3 * block + 1] ** 2
+                       + step[3 * block + 2] ** 2)
+        if norm > limit:
+            for a in range(3):
+                step[3 * block + a] *= limit / norm
+
+
+@kernel
+def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                          cloud_starts, robust_width, model_to_cloud, model_stride):
+    """``surface_terms`` on arrays: -> model index (N,), targets (N, 3), weights (N,), cost."""
+    origin, cell, dims, order, starts = _build_grid_kernel(posed, 0.0)
+    inward_distance = np.empty(len(cloud))
+    inward_index = np.empty(len(cloud), np.int64)
+    _nearest_kernel(posed, origin, cell, dims, order, starts, cloud, inward_distance,
+                    inward_index)
+    outward_index = np.arange(0, len(posed), model_stride)
+    outward_points = np.empty((len(outward_index), 3))
+    for i in range(len(outward_index)):
+        outward_points[i] = posed[outward_index[i]]
+    outward_distance = np.empty(len(outward_index))
+    outward_nearest = np.empty(len(outward_index), np.int64)
+    _nearest_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
+                    outward_points, outward_distance, outward_nearest)
+    # Pairs that share a model point share its row (``_plane_row`` depends on the point alone):
+    # summed per model point, their weights and weighted targets give the same normal
+    # equations from at most Q rows instead of P + Q / stride.
+    total = np.zeros(len(posed))
+    weighted_targets = np.zeros((len(posed), 3))
+    inward_cost, outward_cost = 0.0, 0.0
+    for i in range(len(cloud)):
+        w = _robust_weight(inward_distance[i], robust_width) / len(cloud)
+        total[inward_index[i]] += w
+        for a in range(3):
+            weighted_targets[inward_index[i], a] += w * cloud[i, a]
+        inward_cost += min(inward_distance[i], TRUNCATE)
+    for i in range(len(outward_index)):
+        w = (model_to_cloud * _robust_weight(outward_distance[i], robust_width)
+             / len(outward_index))
+        total[outward_index[i]] += w
+        for a in range(3):
+            weighted_targets[outward_index[i], a] += w * cloud[outward_nearest[i], a]
+        outward_cost += min(outward_distance[i], TRUNCATE)
+    paired = np.flatnonzero(total > 0.0)
+    targets = np.empty((len(paired), 3))
+    for i in range(len(paired)):
+        targets[i] = weighted_targets[paired[i]] / total[paired[i]]
+    cost = inward_cost / len(cloud) + model_to_cloud * outward_cost / len(outward_index)
+    return paired, targets, total[paired], cost
+
+
+@kernel
+def _shape_rows_kernel(points_basis, joints_basis, bone_index, bone_weight, parents,
+                       rotations, model_index, normals, rows):
+    """rows[i, k] = n . d(posed point)/d(shape k) at model point model_index[i] with unit
+    normal normals[i], for a fixed pose (world rotations (J, 3, 3)) and root: the point moves
+    with its bones' joints and turns with their rotations."""
+    shapes, bodies = joints_basis.shape[0], joints_basis.shape[1]
+    moved = np.zeros((shapes, bodies, 3))     # each joint's move per coefficient, root fixed
+    for k in range(shapes):
+        for j in range(1, bodies):
+            p = parents[j]
+            for a in range(3):
+                total = moved[k, p, a]
+                for c in range(3):
+                    total += rotations[p, a, c] * (joints_basis[k, j, c] - joints_basis[k, p, c])
+                moved[k, j, a] = total
+    for i in range(len(model_index)):
+        q = model_index[i]
+        for k in range(shapes):
+            along = 0.0
+            for b in range(bone_index.shape[1]):
+                w = bone_weight[q, b]
+                if w == 0.0:
+                    continue
+                bone = bone_index[q, b]
+                for a in range(3):
+                    change = moved[k, bone, a]
+                    for c in range(3):
+                        change += rotations[bone, a, c] * (points_basis[k, q, c]
+                                                           - joints_basis[k, bone, c])
+                    along += w * normals[i, a] * change
+            rows[i, k] = along
+
+
+@kernel
+def _robust_weight(distance, width):
+    """Geman-McClure IRLS weight: 1 at 0, falling as (width / d)^4 far away."""
+    ratio = distance / width
+    return 1.0 / (1.0 + ratio * ratio) ** 2
+
+
+@kernel
+def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, parents,
+                     cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
+                     robust_width, model_to_cloud, model_stride, pull_weight, pull_goal,
+                     local, root, joints):
+    """``fit_pose``'s Gauss-Newton steps, in place on ``local`` (J, 3, 3) and ``root`` (3,);
+    ``joints`` (J, 3) gets the result's; returns the cost measured before the last step."""
+    count, bodies = rest.shape[0], tpose.shape[0]
+    parameters = 3 + 3 * bodies
+    rotations = np.empty((bodies, 3, 3))
+    posed, posed_normals = np.empty((count, 3)), np.empty((count, 3))
+    lever, reach = np.empty((count, bodies, 3)), np.empty((count, bodies))
+    turned = np.empty_like(local)
+    cost = 0.0
+    for _ in range(iterations):
+        _forward_kernel(local, root, tpose, parents, rotations, joints)
+        _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
+                            parents, posed, posed_normals, lever, reach)
+        paired, targets, weights, cost = _surface_pairs_kernel(
+            posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
+            robust_width, model_to_cloud, model_stride)
+        hessian, gradient = np.zeros((parameters, parameters)), np.zeros(parameters)
+        _plane_normal_equations_kernel(paired, targets, weights, posed, posed_normals, lever,
+                                       reach, hessian, gradient)
+        if pull_weight > 0.0:
+            _pull_normal_equations_kernel(joints, pull_goal, pull_weight, parents, hessian,
+                                          gradient)
+        for a in range(parameters):           # Levenberg-Marquardt's damping, and a floor
+            hessian[a, a] += 1e-3 * hessian[a, a] + 1e-5
+        step = -np.linalg.solve(hessian, gradient)
+        _clamp_step_kernel(step)
+        _apply_step_kernel(local, rotations, step, parents, turned)
+        local[:] = turned
+        for a in range(3):
+            root[a] += step[a]
+    _forward_kernel(local, root, tpose, parents, rotations, joints)
+    return cost
+
+
 # ----------------------------------------------------------------------------- posing
 
 def shaped(model, shape):
@@ -325,65 +502,18 @@ def apply_step(local, root, rotations, step):
     return new, root + step[:3]
 
 
-def robust_weights(distances, width):
-    """Geman-McClure IRLS weights: 1 at 0, falling as (width / d)^4 far away."""
-    return 1.0 / np.square(1.0 + np.square(distances / width))
-
-
-def _clamped(step):
-    """``step`` with each joint's turn at most MAX_TURN and the root's shift at most MAX_SHIFT."""
-    step = step.copy()
-    step[:3] *= min(1.0, MAX_SHIFT / max(np.linalg.norm(step[:3]), 1e-12))
-    turns = step[3:].reshape(NUM_JOINTS, 3)
-    turns *= np.minimum(1.0, MAX_TURN / np.maximum(np.linalg.norm(turns, axis=1), 1e-12))[:, None]
-    return step
-
-
 # ----------------------------------------------------------------------------- one frame
 
 def surface_terms(posed, cloud, cloud_grid, settings):
-    """Both directions' nearest pairs -> model index (N,), targets (N, 3), robust weights
-    (N,), and the fit's cost: the mean truncated distance cloud -> model plus
-    ``model_to_cloud`` times model -> cloud (metres)."""
-    distance_in, nearest_model = nearest(build_grid(posed.points), cloud)
-    outward = np.arange(0, len(posed.points), settings.model_stride)   # model -> cloud points
-    distance_out, nearest_cloud = nearest(cloud_grid, posed.points[outward])
-    weights = np.concatenate([
-        robust_weights(distance_in, settings.robust_width) / len(cloud),
-        settings.model_to_cloud * robust_weights(distance_out, settings.robust_width)
-        / len(outward)])
-    cost = float(np.mean(np.minimum(distance_in, TRUNCATE)) + settings.model_to_cloud
-                 * np.mean(np.minimum(distance_out, TRUNCATE)))
-    return (np.concatenate([nearest_model, outward]),
-            np.concatenate([cloud, cloud[nearest_cloud]]), weights, cost)
-
-
-# ABOVE[k, j]: j is a strict ancestor of k (turning j moves k about j).
-ABOVE = np.zeros((NUM_JOINTS, NUM_JOINTS))
-for _joint in range(NUM_JOINTS):
-    _parent = PARENTS[_joint]
-    while _parent >= 0:
-        ABOVE[_joint, _parent] = 1.0
-        _parent = PARENTS[_parent]
-
-
-def joint_rows(joints, goal, weight):
-    """Rows of the pull of the joints (J, 3) towards ``goal`` (J, 3) with ``weight``:
-    (J * 3, PARAMETERS), (J * 3,). Turning ancestor j by d moves k by d x (p_k - p_j)."""
-    scale = np.sqrt(weight / NUM_JOINTS)
-    lever = ABOVE[:, :, None] * (joints[:, None] - joints[None])             # (J, J, 3)
-    rows = np.empty((NUM_JOINTS, 3, PARAMETERS))
-    rows[:, :, :3] = np.eye(3)
-    rows[:, :, 3:] = -_skew(lever).transpose(0, 2, 1, 3).reshape(NUM_JOINTS, 3, -1)
-    return scale * rows.reshape(-1, PARAMETERS), scale * (joints - goal).ravel()
-
-
-def _skew(v):
-    """(..., 3) -> (..., 3, 3) cross-product matrices: _skew(a) @ b = a x b."""
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    zero = np.zeros_like(x)
-    return np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1),
-                     np.stack([-y, x, zero], -1)], -2)
+    """Both directions' nearest pairs, each cloud point with its nearest model point and
+    (every ``model_stride``-th) model point with its nearest cloud point, robustly weighted
+    (Geman-McClure at ``robust_width``) and summed per model point -> model index (N,),
+    targets (N, 3), weights (N,), and the fit's cost: the mean truncated distance cloud ->
+    model plus ``model_to_cloud`` times model -> cloud (metres)."""
+    return _surface_pairs_kernel(posed.points, cloud, cloud_grid.origin, cloud_grid.cell,
+                                 cloud_grid.dims, cloud_grid.order, cloud_grid.starts,
+                                 float(settings.robust_width), float(settings.model_to_cloud),
+                                 int(settings.model_stride))
 
 
 def combined_pull(pulls):
@@ -408,34 +538,26 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         the last step (which only refines it).
     """
     pull_weight, pull_goal = combined_pull(pulls)
-    for _ in range(settings.iterations):
-        rotations, joints = forward(local, root, tpose_joints)
-        posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights, cost = surface_terms(posed, cloud, cloud_grid, settings)
-        hessian, gradient = np.zeros((PARAMETERS, PARAMETERS)), np.zeros(PARAMETERS)
-        _plane_normal_equations_kernel(index, targets, weights, posed.points, posed.normals,
-                                       posed.lever, posed.reach, hessian, gradient)
-        if pull_weight:
-            extra_rows, extra_values = joint_rows(joints, pull_goal, pull_weight)
-            hessian += extra_rows.T @ extra_rows
-            gradient += extra_rows.T @ extra_values
-        hessian[np.diag_indices_from(hessian)] += 1e-3 * np.diag(hessian) + 1e-5
-        local, root = apply_step(local, root, rotations,
-                                 _clamped(-np.linalg.solve(hessian, gradient)))
-    return local, root, forward(local, root, tpose_joints)[1], cost
+    local = np.array(local, np.float64, order="C")
+    root = np.array(root, np.float64)
+    joints = np.empty((NUM_JOINTS, 3))
+    cost = _fit_pose_kernel(
+        settings.iterations, rest, tpose_joints, model.bone_index, model.bone_weight,
+        model.normals, _PARENTS, cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
+        cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
+        float(settings.model_to_cloud), int(settings.model_stride), float(pull_weight),
+        np.zeros((NUM_JOINTS, 3)) if pull_goal is None else np.asarray(pull_goal, np.float64),
+        local, root, joints)
+    return local, root, joints, cost
 
 
-def shape_jacobian(model, rotations):
-    """d(posed point)/d(shape) for a fixed pose and root: (Q, 3, K)."""
-    basis = model.joints_basis                                                # (K, J, 3)
-    moved = np.zeros_like(basis)              # each joint's move per coefficient, root fixed
-    for j in range(1, NUM_JOINTS):
-        p = PARENTS[j]
-        moved[:, j] = moved[:, p] + (basis[:, j] - basis[:, p]) @ rotations[p].T
-    bones, weights = model.bone_index, model.bone_weight                      # (Q, B)
-    offsets = model.points_basis[:, :, None] - basis[:, bones]               # (K, Q, B, 3)
-    by_bone = np.einsum("qbxy,kqby->kqbx", rotations[bones], offsets) + moved[:, bones]
-    return np.einsum("qb,kqbx->qxk", weights, by_bone)
+def shape_rows(model, rotations, model_index, normals):
+    """n . d(posed point)/d(shape) at the model points ``model_index`` (N,) with unit normals
+    (N, 3), for a fixed pose (world rotations (J, 3, 3)) and root: (N, K)."""
+    rows = np.empty((len(model_index), len(model.points_basis)))
+    _shape_rows_kernel(model.points_basis, model.joints_basis, model.bone_index,
+                       model.bone_weight, _PARENTS, rotations, model_index, normals, rows)
+    return rows
 
 
 def fit_shape(model, shape, frames, settings, width):
@@ -450,9 +572,8 @@ def fit_shape(model, shape, frames, settings, width):
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
         index, targets, weights, _ = surface_terms(posed, cloud, grid, settings)
-        jacobian = shape_jacobian(model, rotations)[index]             # (N, 3, K)
         normals = posed.normals[index]
-        along = np.einsum("na,nak->nk", normals, jacobian) * np.sqrt(weights)[:, None]
+        along = shape_rows(model, rotations, index, normals) * np.sqrt(weights)[:, None]
         distance = np.einsum("na,na->n", normals, posed.points[index] - targets)
         hessian += along.T @ along
         gradient += along.T @ (distance * np.sqrt(weights))

@@ -3,9 +3,10 @@
 The fit asks, several times a frame, for each of ~1,000 points its nearest among ~1,500
 others that have just moved: a k-d tree is rebuilt every time, and scipy's costs about a
 millisecond to build and query at these sizes. A uniform grid is built by one counting sort
-and queried ring by ring: cells within ring r of a query's cell hold every point nearer than
-r cell widths, so the search stops at the first ring r with the best distance so far under r
-widths. Exact, like the tree (ties may pick another of the equally near points).
+and queried ring by ring: after ring r (the box of cells within r of the query's), every
+point not yet seen lies beyond one of the box's faces (those inside the grid), so the search
+stops once the best distance so far is within the nearest such face. Exact, like the tree
+(ties may pick another of the equally near points).
 """
 from typing import NamedTuple
 
@@ -35,17 +36,31 @@ def build_grid(points, cell=None):
         raise ValueError(f"points must have shape (N, 3) with N >= 1, got {points.shape}")
     if not np.isfinite(points).all():
         raise ValueError("points must be finite")
-    low, high = points.min(axis=0), points.max(axis=0)
-    if cell is None:     # a surface of extent L holds ~N points in ~(L / cell)^2 cells
-        cell = float(np.sqrt(np.sum((high - low) ** 2) / len(points)))
+    return Grid(points, *_build_grid_kernel(points, 0.0 if cell is None else float(cell)))
+
+
+@kernel
+def _build_grid_kernel(points, cell):
+    """``build_grid`` on checked points; ``cell`` 0: the default -> origin, cell, dims, order,
+    starts (``Grid``'s fields after the points). Callable from other kernels."""
+    low, high = points[0].copy(), points[0].copy()
+    for n in range(1, len(points)):
+        for a in range(3):
+            low[a] = min(low[a], points[n, a])
+            high[a] = max(high[a], points[n, a])
+    extent = high - low
+    if cell == 0.0:      # a surface of extent L holds ~N points in ~(L / cell)^2 cells
+        cell = np.sqrt(np.sum(extent ** 2) / len(points))
     # at most MAX_CELLS_PER_POINT cells a point, however far an outlier stretches the grid
-    volume = float(np.prod(high - low + 1e-9))
+    volume = (extent[0] + 1e-9) * (extent[1] + 1e-9) * (extent[2] + 1e-9)
     cell = max(cell, (volume / (MAX_CELLS_PER_POINT * len(points))) ** (1 / 3), 1e-4)
-    dims = np.floor((high - low) / cell).astype(np.int64) + 1
+    dims = np.empty(3, np.int64)
+    for a in range(3):
+        dims[a] = int(np.floor(extent[a] / cell)) + 1
     order = np.empty(len(points), np.int64)
-    starts = np.zeros(int(np.prod(dims)) + 1, np.int64)
+    starts = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
     _sort_into_cells(points, low, cell, dims, order, starts)
-    return Grid(points, low, float(cell), dims, order, starts)
+    return low, cell, dims, order, starts
 
 
 def nearest(grid, queries):
@@ -85,20 +100,12 @@ def _sort_into_cells(points, origin, cell, dims, order, starts):
 @kernel
 def _nearest_kernel(points, origin, cell, dims, order, starts, queries, distances, indices):
     home = np.empty(3, np.int64)
-    widest = max(dims[0], max(dims[1], dims[2]))
     for m in range(len(queries)):
         q = queries[m]
         _cell_of(q, origin, cell, dims, home)
-        # a query outside the grid is at least this far from every cell: rings start there
-        outside = 0.0
-        for a in range(3):
-            below = origin[a] - q[a]
-            above = q[a] - (origin[a] + dims[a] * cell)
-            gap = max(below, max(above, 0.0))
-            outside += gap * gap
         best, best_index = np.inf, -1
         ring = 0
-        while ring <= widest:
+        while True:
             for i in range(max(home[0] - ring, 0), min(home[0] + ring, dims[0] - 1) + 1):
                 for j in range(max(home[1] - ring, 0), min(home[1] + ring, dims[1] - 1) + 1):
                     for k in range(max(home[2] - ring, 0), min(home[2] + ring, dims[2] - 1) + 1):
@@ -111,9 +118,15 @@ def _nearest_kernel(points, origin, cell, dims, order, starts, queries, distance
                                  + (points[n, 2] - q[2]) ** 2)
                             if d < best:
                                 best, best_index = d, n
-            # every point outside ring r lies at least r cell widths beyond the query's cell
-            reach = ring * cell
-            if best_index >= 0 and best <= reach * reach + outside:
+            # A point not yet seen lies beyond a face of the box of cells searched, one that
+            # is not the grid's border: at least that face's distance from the query away.
+            beyond = np.inf
+            for a in range(3):
+                if home[a] - ring > 0:
+                    beyond = min(beyond, q[a] - (origin[a] + (home[a] - ring) * cell))
+                if home[a] + ring < dims[a] - 1:
+                    beyond = min(beyond, origin[a] + (home[a] + ring + 1) * cell - q[a])
+            if beyond == np.inf or (best_index >= 0 and best <= beyond * beyond):
                 break
             ring += 1
         distances[m] = np.sqrt(best)

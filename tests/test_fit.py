@@ -115,17 +115,21 @@ def test_normal_equations_are_the_rows_products(model):
     np.testing.assert_allclose(gradient, 1 + rows.T @ values, atol=1e-12)
 
 
-def test_joint_rows_are_the_derivative_of_the_joints(model):
+def test_pull_normal_equations_are_the_joints_derivative_products(model):
     state = posed_state(model, seed=3)
     tpose, joints = state[2], state[6]
-    rows, values = fit.joint_rows(joints, joints + 0.01, weight=NUM_JOINTS)   # scale 1
-    np.testing.assert_allclose(values, -0.01)
     numeric = numeric_derivative(model, state, lambda local, root:
-                                 fit.forward(local, root, tpose)[1].ravel())
+                                 fit.forward(local, root, tpose)[1].ravel())     # (J * 3, P)
+    rows, values = twins.joint_pull_rows(joints, joints + 0.01, weight=NUM_JOINTS)  # scale 1
     np.testing.assert_allclose(rows, numeric, atol=2e-5)
+    hessian, gradient = np.eye(fit.PARAMETERS), np.ones(fit.PARAMETERS)
+    fit._pull_normal_equations_kernel(joints, joints + 0.01, float(NUM_JOINTS), fit._PARENTS,
+                                      hessian, gradient)
+    np.testing.assert_allclose(hessian, np.eye(fit.PARAMETERS) + rows.T @ rows, atol=1e-12)
+    np.testing.assert_allclose(gradient, 1 + rows.T @ values, atol=1e-12)
 
 
-def test_shape_jacobian_is_the_derivative_of_the_posed_points(model):
+def test_shape_rows_are_the_derivative_of_the_posed_points_along_their_normals(model):
     shape, _, _, local, root, rotations, _ = posed_state(model, seed=4)
 
     def posed_points(coefficients):
@@ -134,8 +138,71 @@ def test_shape_jacobian_is_the_derivative_of_the_posed_points(model):
 
     base, eps = posed_points(shape), 1e-6
     numeric = np.stack([(posed_points(shape + eps * np.eye(len(shape))[k]) - base) / eps
-                        for k in range(len(shape))], axis=-1)
-    np.testing.assert_allclose(fit.shape_jacobian(model, rotations), numeric, atol=1e-7)
+                        for k in range(len(shape))], axis=-1)                # (Q, 3, K)
+    index = np.random.default_rng(13).integers(0, len(base), 200)
+    normals = np.random.default_rng(14).normal(size=(200, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    np.testing.assert_allclose(fit.shape_rows(model, rotations, index, normals),
+                               np.einsum("na,nak->nk", normals, numeric[index]), atol=1e-7)
+
+
+def surface_arguments(model, seed, stride=1):
+    """A posed model and a cloud of another pose of it (some points far off), with settings."""
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=seed)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    rng = np.random.default_rng(seed + 100)
+    cloud = posed.points[rng.choice(len(rest), 700, replace=False)] + rng.normal(
+        scale=0.02, size=(700, 3))
+    cloud[:20] += 0.5                                                 # past the robust width
+    settings = fit.FitSettings(model_stride=stride)
+    return rest, tpose, local, root, posed, cloud, settings
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_surface_terms_summed_per_model_point_give_the_pairs_normal_equations(model, stride):
+    _, _, _, _, posed, cloud, settings = surface_arguments(model, 15, stride)
+    index, targets, weights, cost = fit.surface_terms(posed, cloud, build_grid(cloud), settings)
+    assert len(np.unique(index)) == len(index)                 # one row per model point
+    pairs = twins.surface_pairs(posed.points, cloud, settings.robust_width,
+                                settings.model_to_cloud, stride, fit.TRUNCATE)
+    assert cost == pytest.approx(pairs[3], abs=1e-12)
+    got = twins.plane_normal_equations(index, targets, weights, *posed)
+    want = twins.plane_normal_equations(*pairs[:3], *posed)
+    for got_part, want_part in zip(got, want):
+        np.testing.assert_allclose(got_part, want_part, atol=1e-12)
+
+
+def fit_pose_twin(model, rest, tpose, cloud, local, root, settings, pull_weight, pull_goal):
+    """``fit.fit_pose`` from the twins: brute-force pairs, dense rows, NumPy solve."""
+    cost = None
+    for _ in range(settings.iterations):
+        rotations, joints = fit.forward(local, root, tpose)
+        posed = twins.body_model_pose(model, rest, tpose, rotations, joints)
+        index, targets, weights, cost = twins.surface_pairs(
+            posed[0], cloud, settings.robust_width, settings.model_to_cloud,
+            settings.model_stride, fit.TRUNCATE)
+        hessian, gradient = twins.plane_normal_equations(index, targets, weights, *posed)
+        rows, values = twins.joint_pull_rows(joints, pull_goal, pull_weight)
+        hessian, gradient = hessian + rows.T @ rows, gradient + rows.T @ values
+        hessian[np.diag_indices_from(hessian)] += 1e-3 * np.diag(hessian) + 1e-5
+        step = -np.linalg.solve(hessian, gradient).reshape(-1, 3)
+        limits = np.r_[fit.MAX_SHIFT, np.full(NUM_JOINTS, fit.MAX_TURN)]
+        step *= np.minimum(1, limits / np.maximum(np.linalg.norm(step, axis=1), 1e-300))[:, None]
+        local, root = fit.apply_step(local, root, rotations, step.ravel())
+    return local, root, fit.forward(local, root, tpose)[1], cost
+
+
+def test_fit_pose_matches_its_twin(model):
+    rest, tpose, local, root, _, cloud, settings = surface_arguments(model, 16)
+    start = fit.apply_step(local, root, fit.forward(local, root, tpose)[0],
+                           np.random.default_rng(17).normal(scale=0.2, size=fit.PARAMETERS))
+    goal = fit.forward(local, root, tpose)[1] + 0.03
+    settings = settings._replace(iterations=3)
+    got = fit.fit_pose(model, rest, tpose, cloud, build_grid(cloud), *start, settings,
+                       ((0.004, goal), (0.006, goal)))
+    want = fit_pose_twin(model, rest, tpose, cloud, *start, settings, 0.01, goal)
+    for got_part, want_part in zip(got, want):
+        np.testing.assert_allclose(got_part, want_part, atol=1e-9)
 
 
 def test_apply_step_keeps_rotations_and_zero_is_no_step(model):

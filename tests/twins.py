@@ -336,3 +336,55 @@ def body_model_pose(model, rest, tpose, rotations, joints):
     reach = weights @ below
     lever = np.einsum("qk,qka,kj->qja", weights, by_bone, below) - reach[:, :, None] * joints
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True), lever, reach
+
+
+def surface_pairs(posed_points, cloud, robust_width, model_to_cloud, model_stride, truncate):
+    """The source fit's pairs (minretarget.fit.surface_terms) one by one, before they are
+    summed per model point: each cloud point with its nearest model point, each
+    ``model_stride``-th model point with its nearest cloud point (brute force), Geman-McClure
+    weights -> model index (N,), targets (N, 3), weights (N,), cost."""
+    inward = np.linalg.norm(cloud[:, None] - posed_points[None], axis=-1)          # (P, Q)
+    inward_index = inward.argmin(axis=1)
+    inward_distance = inward.min(axis=1)
+    outward_index = np.arange(0, len(posed_points), model_stride)
+    outward = np.linalg.norm(posed_points[outward_index, None] - cloud[None], axis=-1)
+    outward_nearest = outward.argmin(axis=1)
+    outward_distance = outward.min(axis=1)
+
+    def robust(distances):
+        return 1.0 / (1.0 + (distances / robust_width) ** 2) ** 2
+
+    weights = np.concatenate([robust(inward_distance) / len(cloud),
+                              model_to_cloud * robust(outward_distance) / len(outward_index)])
+    cost = (np.minimum(inward_distance, truncate).mean()
+            + model_to_cloud * np.minimum(outward_distance, truncate).mean())
+    return (np.concatenate([inward_index, outward_index]),
+            np.concatenate([cloud, cloud[outward_nearest]]), weights, cost)
+
+
+def plane_normal_equations(index, targets, weights, points, normals, lever, reach):
+    """Point-to-plane normal equations (minretarget.fit._plane_normal_equations_kernel) with
+    dense rows: the row of pair i is sqrt(w) [n, (lever_j x n) for each joint j that moves the
+    point], its value sqrt(w) n . (x - y) -> hessian (P, P), gradient (P,)."""
+    n = normals[index]
+    turns = np.cross(lever[index], n[:, None]) * (reach[index] > 0)[..., None]      # (N, J, 3)
+    rows = np.sqrt(weights)[:, None] * np.concatenate([n, turns.reshape(len(index), -1)], 1)
+    values = np.sqrt(weights) * np.sum(n * (points[index] - targets), axis=1)
+    return rows.T @ rows, rows.T @ values
+
+
+def joint_pull_rows(joints, goal, weight):
+    """The rows and values of the joints' pull towards ``goal`` (minretarget.fit's
+    _pull_normal_equations_kernel): joint k moves by t + sum over strict ancestors j of
+    d_j x (p_k - p_j); scaled by sqrt(weight / J) -> (J * 3, 3 + 3 J), (J * 3,)."""
+    count = len(PARENTS)
+    rows = np.zeros((count, 3, 3 + 3 * count))
+    for k in range(count):
+        rows[k, :, :3] = np.eye(3)
+        j = PARENTS[k]
+        while j >= 0:
+            lever = joints[k] - joints[j]
+            rows[k, :, 3 + 3 * j:6 + 3 * j] = -np.cross(np.eye(3), lever)   # d x l, per d
+            j = PARENTS[j]
+    scale = np.sqrt(weight / count)
+    return scale * rows.reshape(count * 3, -1), scale * (joints - goal).ravel()
