@@ -4,7 +4,6 @@ and ``.npy`` with NumPy. Lengths and axes are the file's own; ``minretarget.unit
 Reading keeps the file's vertex order and count (no merging, no removal of unreferenced
 vertices), so that faces and per-vertex outputs line up with the file.
 """
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -92,14 +91,13 @@ def checked_points(path, points, faces=None):
 def _read_trimesh(path, suffix):
     trimesh = require("trimesh", f"reading {suffix} files")
     try:
-        with warnings.catch_warnings():
-            # maintain_order makes trimesh's OBJ texture code warn about absent UVs; harmless.
-            warnings.simplefilter("ignore", RuntimeWarning)
-            loaded = trimesh.load(path, file_type=suffix[1:], process=False,
-                                  maintain_order=True)
-            geometries = (list(loaded.geometry.values()) if isinstance(loaded, trimesh.Scene)
-                          else [loaded])
-            read = [(np.asarray(g.vertices), getattr(g, "faces", None)) for g in geometries]
+        # No warnings filter here, not even a scoped one: the filters are the process's (and
+        # every thread's, catch_warnings included), and a reader must not change what its
+        # caller sees. (An older trimesh warned about absent UVs here; 5.2 does not.)
+        loaded = trimesh.load(path, file_type=suffix[1:], process=False, maintain_order=True)
+        geometries = (list(loaded.geometry.values()) if isinstance(loaded, trimesh.Scene)
+                      else [loaded])
+        read = [(np.asarray(g.vertices), getattr(g, "faces", None)) for g in geometries]
     except Exception as error:  # noqa: BLE001
         # trimesh's readers fail on damaged files with many exception types (found by
         # fuzzing: UnboundLocalError, TypeError, OverflowError, ...): one clear error instead.
