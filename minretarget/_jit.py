@@ -1,11 +1,10 @@
 """The one place that decides how minretarget's kernels are compiled.
 
-Every kernel is decorated with ``kernel``, serial: a stream runs one frame at a time. The
-largest per-frame kernel besides SKR, linear blend skinning of 13,718 points, takes 0.8 ms
-serial, so ``prange`` could save at most about half of that on 2 cores, and it cost more:
-with numba's TBB threading layer every parallel call leaked about 7 kB (numba issue #10225:
-70 MB per 10,000 frames), and with its OpenMP layer a frame took 9 to 16 times longer while
-another process kept a core busy (threads waiting at the barrier). Compiled code is cached
+Every kernel is decorated with ``kernel``, serial: a stream runs one frame at a time, and
+the per-frame kernels besides SKR are too short for threads to pay for themselves. ``prange``
+cost more than it saved: numba's TBB threading layer leaks memory on every parallel call
+(numba issue #10225), and with its OpenMP layer the threads wait at the barrier whenever
+another process holds a core (the figures: docs/runtime_notes.md). Compiled code is cached
 on disk next to the package, so only the first import on a machine pays the compile time.
 fastmath allows reassociation and contraction (FMA) but keeps NaN and inf semantics, so a
 bad value propagates instead of being optimised into garbage. Set ``NUMBA_DISABLE_JIT=1``

@@ -394,9 +394,9 @@ def start_local_worker(report):
     """``start_worker`` in a process of the local pool, which on Linux the kernel kills when
     the batch process dies: a killed batch leaves no worker writing into a pair that a
     ``--resume`` runs again. At its exit the garbage collector skips the objects it holds:
-    the interpreter's collections over numba's and the weights' objects took 0.3 s of a
-    worker's exit, which the batch waits for, and freed nothing that had to be (its files
-    are closed by then)."""
+    the interpreter's collections over numba's and the weights' objects slow a worker's
+    exit, which the batch waits for, and free nothing that has to be (its files are closed
+    by then; the time it took: docs/runtime_notes.md)."""
     if sys.platform.startswith("linux"):
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)       # PR_SET_PDEATHSIG
     atexit.register(gc.freeze)

@@ -28,21 +28,13 @@ The state (filtered toes, anchors, offsets, which foot is planted) lives in
 ``smrm.MotionState``, so a stream saved and resumed goes on exactly.
 
 The defaults were chosen on validation motion, never the test split
-(``python -m training.tune_contacts``: held-out subjects 06 and 09, basketball, running and
-walking, 1,354 frames on held-out bodies, SKR and SMRM of the shipped weights): among the
-settings of a grid whose toes move no faster over the ground truth's contacts than the
-truth's own, those within 0.01 mm of the least PA-MPJPE, and of those the slowest toes.
-Chosen last for the mirror-averaged skeleton denoiser (``minretarget.denoise``) with the
-height left to SMRM: plant below 2 m/s, a 1 cm leash and no creep, toe speed 0.244 -> 0.174
-m/s (the truth's: 0.191) for MPJPE 0.03884 -> 0.03894 m and PA-MPJPE 0.02241 -> 0.02246 m.
-Every 1 cm leash of the grid (plant and lift speeds 1 to 3 m/s, creeps 0 to 0.4) scores
-within 0.04 mm of that, with toes at 0.174 to 0.193 m/s; the creeps of 0 to 0.2 with plant
-and lift at 2 m/s tie to 0.01 mm (0.02246), the slower toes without it. The previous lock,
-which held the height too (plant below 1 m/s, a 1 cm leash, a 0.2 creep), gave 0.188 m/s
-for a PA-MPJPE of 0.02271 m (before the mirror averaging). Re-run on the validation set
-without the broken capture 09_10 (1,396 frames; ``training.data.cmu.BROKEN_TRIALS``), the
-tuner picks the same lock: toes 0.251 -> 0.179 m/s (the truth's: 0.198), PA-MPJPE 0.01761 ->
-0.01767 m.
+(``python -m training.tune_contacts``), by a rule written before the run: among the settings
+of a grid whose toes move no faster over the ground truth's contacts than the truth's own,
+those within 0.01 mm of the least PA-MPJPE, and of those the slowest toes. They were chosen
+for the SMRM and the mirror-averaged skeleton denoiser (``minretarget.denoise``) they run
+after, so a new SMRM or denoiser needs the tuner run again. The leash matters most: the
+grid's other settings score alike at the same leash. The figures of each choice:
+docs/runtime_notes.md, "Foot contacts".
 """
 from typing import NamedTuple
 

@@ -15,9 +15,9 @@ seen so far. Per frame, with the smoothed joints s_t (J, 3) and the last frame's
 The step runs twice, on the skeleton and on its mirror image (x -> -x, left and right joints
 swapped), each with its own GRU state, and the second answer, mirrored back, is averaged with
 the first: a body and its mirror image then get mirrored corrections, and the average is the
-better estimate (validation trials, the denoiser's own score: joint error 0.0222 -> 0.0220 m,
-acceleration error 0.00955 -> 0.00946; ``training.train`` scores it this way). One GRU step
-more per frame: about 0.3 MFLOP.
+better estimate (on validation trials, in joint and acceleration error; ``training.train``
+scores the denoiser this way; the figures: docs/runtime_notes.md). It costs one GRU step more
+per frame, small beside SKR.
 
 Causal: only frames seen so far, one at a time; the GRU states live in
 ``smrm.MotionState.denoise_hidden``. Not in the paper.

@@ -18,15 +18,11 @@ known, and a body does not turn far in a frame. So the stream keeps a reference 
        right, reading refused. Only after ``CONFIRM`` such frames in a row does h0 become the
        first reading's heading (the body did turn, or h0 was wrong from the start).
 
-Measured on the training split's dance and seated trials (subject 05, salsa, martial arts,
-subject 13: 46,125 frames, the shipped weights; validation has no flips to tune on). The
-runtime's readings (SKR, then the refiner) face more than 90 degrees from the truth's in 95
-frames, the skeleton SMRM sees (after smoothing and the denoiser) in 82; with the check in
-41, for a second reading on 117 frames (0.25 %). Scored on the readings alone (no
-smoothing): the check leaves 40; taking the nearer reading and moving h0 to it every time
-(step 3 without the wait) leaves 49; waiting 1, 2, 3 or 8 frames 52, 52, 48 and 40; never
-moving h0 50. Triggers of 30, 60 and 90 degrees (with the nearer reading every time) left 50,
-55 and 70.
+``TRIGGER``, ``CONFIRM`` and the wait of step 3 were chosen on the training split's dance and
+seated trials (validation has no flips to tune on), by how many frames still face more than
+90 degrees from the truth's: the check about halves them, for a second reading on a small
+fraction of the frames, and waiting before moving h0 beats moving it at once or never. The
+counts of each variant: docs/runtime_notes.md, "Facing check".
 """
 import numpy as np
 

@@ -2,9 +2,9 @@
 points around it.
 
 SKR predicts all 22 joints from one global feature of the cloud, which pulls joints far from
-the body's centre towards their average place (on validation poses its wrists came out 4 to
-5 cm too close to the elbows, at 17 to 25 degrees off). The refiner sees each joint's own
-neighbourhood:
+the body's centre towards their average place (the wrists come out too close to the
+elbows, the forearms turned off their direction: docs/runtime_notes.md). The refiner sees each
+joint's own neighbourhood:
 
     for each joint j of SKR's skeleton (J, 3):
         its K nearest points of the cloud, less joint j, / scale   (K, 3)
@@ -66,8 +66,7 @@ def refine_joints(points, joints, weights, neighbours):
 def _nearest(points, centre, k):
     """Indices of the k <= P points nearest ``centre`` (3,), in no particular order (the
     max-pool does not care). A max-heap of the k nearest so far: most points fail one comparison with
-    its top, so this is about one pass over the points, where a full sort was ten times
-    slower."""
+    its top, so this is about one pass over the points, where a full sort orders them all."""
     heap_distance = np.full(k, np.inf, dtype=np.float32)
     heap_index = np.zeros(k, dtype=np.int64)
     for i in range(points.shape[0]):

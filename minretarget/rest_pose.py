@@ -4,10 +4,9 @@ Retargeting keeps each joint's local rotation and puts it on the target's own re
 Rest skeletons differ with the body's proportions, in bone directions as well as lengths (a
 wider pelvis slants the thighs, a heavier chest bends the spine), so turning each target bone
 onto the source bone, as the analytic retargeting does, is exact only between bodies whose rest
-poses agree. With the true source joints and the true target rig, retargeting relative to the
-source's true rest skeleton instead lowers the validation PA-MPJPE from 6.1 to 1.2 mm (and
-the shipped model's reference, below, to 3.8 mm; clean skeleton sources such as BVH files
-therefore keep it too).
+poses agree. Retargeting relative to the source's rest skeleton instead removes most of that
+error, and the predicted one below much of it, even with exact source joints (so clean
+skeleton sources such as BVH files keep it too; the figures: docs/runtime_notes.md).
 
 The source is never seen at rest, so its rest skeleton is predicted: a linear map, fitted on
 anny bodies (``training.rest_pose``), from a body's bone lengths to its rest bone directions.
@@ -19,9 +18,9 @@ Taking the difference, rather than the source's predicted skeleton, keeps the bi
 puts into both skeletons (the target's T-pose comes from SKR too) on both sides.
 
 The source's bone lengths are the mean over the frames seen so far of the (denoised) source
-skeleton's (``smrm.MotionState.source_bone_lengths``); SKR's lengths are noisy (5 to 12 % per
-bone on validation), so the map is fitted on lengths with noise of that size added, which
-shrinks it towards what the noise leaves predictable. Not in the paper.
+skeleton's (``smrm.MotionState.source_bone_lengths``); SKR's lengths are noisy (several per
+cent per bone: docs/runtime_notes.md), so the map is fitted on lengths with noise of that size
+added, which shrinks it towards what the noise leaves predictable. Not in the paper.
 
 Features of a body (F = 2 + B, B = J - 1 bones): 1, each bone's length averaged with its
 mirror image's (anny bodies are symmetric) over the sum of all bone lengths, and that sum.

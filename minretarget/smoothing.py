@@ -15,12 +15,10 @@ harder for the same lag. The defaults are near Benedict and Bordner's relation
 beta = alpha^2 / (2 - alpha) (0.38 for alpha = 0.7). Causal and one frame at a time: the
 state (y, v) lives in ``smrm.MotionState``.
 
-The defaults were chosen on validation trials (held-out subjects on held-out bodies, the
-weights shipped before the refiner's longer training, 12 trials, 1,354 frames): the least Acc
-error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro filter this
-replaced (min cutoff 8 Hz, beta 4). Against it, MPJPE 0.0442 -> 0.0417 m,
-PA-MPJPE 0.0259 -> 0.0258, Acc 0.0193 -> 0.0178 m/frame^2, PA-Acc 0.0154 -> 0.0141; with no
-smoothing 0.0403, 0.0253, 0.0263, 0.0207.
+The defaults were chosen on validation trials (held-out subjects on held-out bodies): the
+least Acc error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro
+filter this replaced (min cutoff 8 Hz, beta 4). Smoothing trades jitter (Acc) against lag
+(MPJPE); the figures of the choice, with and without it: docs/runtime_notes.md.
 """
 from typing import NamedTuple
 
