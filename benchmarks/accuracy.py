@@ -282,6 +282,12 @@ def analytic_full(source_joints, target, rest_pose=None, foot_lock=None):
     return pose_with_rig(rotations, root, tpose, target.points, target.skin_weights)
 
 
+def foot_lock_of(retargeter):
+    """The FootLock (or None) a Retargeter runs: its ``config``'s where it has a
+    ``PipelineConfig``, else its own attribute."""
+    return getattr(retargeter, "config", retargeter).foot_lock
+
+
 def stream(retargeter, source_joints, clouds=None):
     """Run SMRM, FK and LBS online over known source joints (found in ``clouds``, if given:
     the facing check reads those again) -> joints, vertices (T, ...)."""
@@ -343,7 +349,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
         denoised) with what ``retargeter`` (the row's model) gives SMRM's prior and after it:
         its rest-pose model and its foot lock (``analytic_full``)."""
         return analytic_full(np.stack([f.source_joints for f in frames]), target,
-                             retargeter.rest_pose_model, retargeter.foot_lock)
+                             retargeter.rest_pose_model, foot_lock_of(retargeter))
 
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
