@@ -37,8 +37,8 @@ from accuracy import (add_report_option, load_sequence, refuse_test_split, selec
                       stream, training_env, write_text)
 from minretarget.metrics import METRIC_NAMES, evaluate
 from minretarget.retargeter import Retargeter
-from minretarget.smoothing import Smoothing
 from minretarget.weights import DEFAULT_WEIGHTS, load_weights
+from minretarget.pipeline import PipelineConfig
 
 # variant -> (run folder under --runs, recipe overrides, data folder under --data or None)
 VARIANTS = {
@@ -74,15 +74,18 @@ def variant_metrics(weights, sequence, skr_joints, rig):
     """{input: metrics} for one variant's SMRM on one sequence; ``rig``: the shipped SKR and
     SKIN's ``Target`` (every variant carries them unchanged, so they run once). No foot lock:
     the variants differ in SMRM, and the lock would blur what SMRM did to the legs."""
-    retargeter = Retargeter(weights, warn=False, foot_lock=None)
+    retargeter = Retargeter(weights, PipelineConfig(foot_lock=None), warn=False)
     retargeter.set_target(rig.points, tpose_joints=rig.tpose_joints,
                           skin_weights=rig.skin_weights)
     truth = sequence["target_joints"], sequence["target_points"]
     out = {}
-    # SKR's joints smoothed as the Retargeter does by default; the true joints as they are.
-    for name, source_joints, smoothing in zip(INPUTS, (skr_joints, sequence["source_joints"]),
-                                              (Smoothing(), None)):
-        retargeter.smoothing = smoothing
+    # SKR's joints smoothed (and denoised) as the Retargeter does by default; the true joints
+    # as they are, SMRM alone.
+    for name, source_joints, config in zip(INPUTS, (skr_joints, sequence["source_joints"]),
+                                           (retargeter.config, retargeter.config.replace(
+                                               smoothing=None, denoise=False))):
+        retargeter.reset()
+        retargeter.config = config
         joints, vertices = stream(retargeter, source_joints)
         out[name] = evaluate(joints, truth[0], vertices, truth[1],
                              rest_points=sequence["target_tpose_points"])
@@ -119,7 +122,8 @@ def main(argv=None):
     if missing:
         sys.exit(f"no weights for {missing}: run with --train")
     variants = {v: load_weights(p) for v, p in paths.items()}
-    shipped = Retargeter(load_weights(), warn=False, smoothing=None, denoise=False)  # raw joints
+    shipped = Retargeter(load_weights(), PipelineConfig(smoothing=None, denoise=False),
+        warn=False)  # raw joints
     sequence_paths, frames = select_sequences(sorted((Path(args.data) / "test").glob("*.npz")),
                                               args.quick)
     started, totals, count = time.perf_counter(), {}, 0

@@ -47,11 +47,14 @@ retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     oracle both          both of the above (not smoothed or denoised; foot lock on)
     paper                the paper's Table 4, reported on its own SMPL test set (not this one)
 Only when named in --rows:
-    model, source fit    the model with the source fit (``Retargeter(fit_source=FitSettings())``,
+    model, source fit    the model with the source fit (the ``fitted`` preset,
                          minretarget.fit: a body model tracked in every cloud after SKR, the
                          refiner and the facing check), no smoothing and no denoiser (both
                          learned or tuned on SKR's errors, not the fit's)
     analytic, source fit  ``analytic`` on that row's source skeletons
+    model, source fit, no X  ``model, source fit`` with one stage off (``FIT_ABLATIONS``): the
+                         refiner on the source readings, the facing check, the rest-pose
+                         model, the foot lock
     model, foot leash X m  the model with the foot lock's leash (``FootLock.max_offset``, the
                          command line's --foot-leash) X instead of 1 cm: planted toes held
                          firmer, for X in ``FOOT_LEASHES``
@@ -93,7 +96,6 @@ import numpy as np
 from minretarget.analytic import analytic_rotations
 from minretarget.atomic import atomic_write
 from minretarget.contacts import FootLock, plant_feet
-from minretarget.fit import FitSettings
 from minretarget.kinematics import forward_kinematics, leg_length, skinning_transforms
 from minretarget.metrics import (METRIC_NAMES, crossed_feet, evaluate, foot_contacts,
                                  foot_speeds, joint_errors, skating_steps)
@@ -101,6 +103,7 @@ from minretarget.rest_pose import bone_lengths, prior_reference
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
+from minretarget.pipeline import PRESETS, PipelineConfig
 
 # `training` runs from the checkout (it is not installed): the repository root on the path
 # lets this script, and the benchmarks that import it, load training's datasets.
@@ -147,14 +150,21 @@ ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock
         "oracle target", "oracle both")
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
 LEASH_ROWS = tuple(f"model, foot leash {leash:g} m" for leash in FOOT_LEASHES)
-FIT_ROWS = ("model, source fit", "analytic, source fit")
+# The fitted preset with one stage off each (docs/source_fit.md, "Which stages the fit makes
+# redundant"); "no refiner": the source readings only, the target's skeleton keeps it.
+FIT_ABLATIONS = {"model, source fit, no refiner": {"refine": False},
+                 "model, source fit, no facing check": {"facing_check": False},
+                 "model, source fit, no rest pose": {"rest_pose": False},
+                 "model, source fit, no foot lock": {"foot_lock": None}}
+FIT_ROWS = ("model, source fit", "analytic, source fit", *FIT_ABLATIONS)
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
 # Paired comparisons, sequence by sequence, printed when a run has both rows.
 PAIRS = (("model", "analytic"), ("model", "analytic, plain"),
          ("model, mirrored source", "analytic, mirrored source"),
-         ("model, source fit", "analytic, source fit"), ("model, source fit", "model"))
+         ("model, source fit", "analytic, source fit"), ("model, source fit", "model"),
+         *((row, "model, source fit") for row in FIT_ABLATIONS))
 
 
 def command_line(main):
@@ -282,12 +292,6 @@ def analytic_full(source_joints, target, rest_pose=None, foot_lock=None):
     return pose_with_rig(rotations, root, tpose, target.points, target.skin_weights)
 
 
-def foot_lock_of(retargeter):
-    """The FootLock (or None) a Retargeter runs: its ``config``'s where it has a
-    ``PipelineConfig``, else its own attribute."""
-    return getattr(retargeter, "config", retargeter).foot_lock
-
-
 def stream(retargeter, source_joints, clouds=None):
     """Run SMRM, FK and LBS online over known source joints (found in ``clouds``, if given:
     the facing check reads those again) -> joints, vertices (T, ...)."""
@@ -314,25 +318,28 @@ def run_sequence(weights, sequence, wanted=ROWS):
            "skin_weights": learned.target.skin_weights}
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
-    paper = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
-                       refine=False, denoise=False, rest_pose=False, facing_check=False)
+    paper = Retargeter(weights, "paper")
     paper.set_target(points)                         # its own rig: SKR once on the T-pose
-    unrefined = Retargeter(weights, refine=False)
+    unrefined = Retargeter(weights, PipelineConfig(refine=False, allow_untrained=True))
     unrefined.set_target(points)                     # its own rig: SKR's, not refined
-    no_lock, no_denoiser = Retargeter(weights, foot_lock=None), Retargeter(weights, denoise=False)
-    no_rest_pose = Retargeter(weights, rest_pose=False)
-    no_facing_check = Retargeter(weights, facing_check=False)
-    raw = Retargeter(weights, smoothing=None, denoise=False)
-    mirrored = Retargeter(weights, mirror_source=True)
-    fitted = (Retargeter(weights, fit_source=FitSettings(), smoothing=None, denoise=False)
+    no_lock = Retargeter(weights, PipelineConfig(foot_lock=None))
+    no_denoiser = Retargeter(weights, PipelineConfig(denoise=False))
+    no_rest_pose = Retargeter(weights, PipelineConfig(rest_pose=False))
+    no_facing_check = Retargeter(weights, PipelineConfig(facing_check=False))
+    raw = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
+    mirrored = Retargeter(weights, PipelineConfig(mirror_source=True))
+    fitted = (Retargeter(weights, "fitted")
               if set(FIT_ROWS) & set(wanted) else None)
+    fit_ablations = {row: Retargeter(weights, PRESETS["fitted"].replace(**changes))
+                     for row, changes in FIT_ABLATIONS.items() if row in wanted}
     oracle_rig = Retargeter(weights)
-    oracle_rig_raw = Retargeter(weights, smoothing=None, denoise=False)
-    leashed = {row: Retargeter(weights, foot_lock=FootLock(max_offset=leash))
+    oracle_rig_raw = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
+    leashed = {row: Retargeter(weights, PipelineConfig(foot_lock=FootLock(max_offset=leash)))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
                                  (no_facing_check, rig), (raw, rig), (mirrored, rig),
                                  *(((fitted, rig),) if fitted else ()),
+                                 *((retargeter, rig) for retargeter in fit_ablations.values()),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
@@ -349,18 +356,27 @@ def run_sequence(weights, sequence, wanted=ROWS):
         denoised) with what ``retargeter`` (the row's model) gives SMRM's prior and after it:
         its rest-pose model and its foot lock (``analytic_full``)."""
         return analytic_full(np.stack([f.source_joints for f in frames]), target,
-                             retargeter.rest_pose_model, foot_lock_of(retargeter))
+                             retargeter.rest_pose_model, retargeter.config.foot_lock)
 
     skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
     fitted_frames = functools.cache(lambda: [fitted.step_skeleton(joints, cloud)
                                              for joints, cloud in zip(raw_joints, clouds)])
+
+    @functools.cache
+    def ablated_frames(row):
+        """A fitted-preset row with a stage off, on the readings its settings make."""
+        retargeter = fit_ablations[row]
+        readings = raw_joints if retargeter.config.refine else skr_alone()
+        return [retargeter.step_skeleton(joints, cloud) for joints, cloud in zip(readings,
+                                                                                clouds)]
     # The source skeleton SMRM saw, for the rows that keep it.
     seen = {"model": lambda: frames, "analytic": lambda: frames,
             "analytic, plain": lambda: frames,
             "model, mirrored source": mirrored_frames,
             "analytic, mirrored source": mirrored_frames,
-            "model, source fit": fitted_frames, "analytic, source fit": fitted_frames}
+            "model, source fit": fitted_frames, "analytic, source fit": fitted_frames,
+            **{row: functools.partial(ablated_frames, row) for row in fit_ablations}}
     make = {"model": lambda: model,
             "model, no refiner": lambda: stream(unrefined, skr_alone(), clouds),
             "model, no denoiser": lambda: stream(no_denoiser, raw_joints, clouds),
@@ -375,6 +391,8 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "analytic, mirrored source": lambda: analytic(mirrored_frames(), mirrored),
             "model, source fit": lambda: stacked(fitted_frames()),
             "analytic, source fit": lambda: analytic(fitted_frames(), fitted),
+            **{row: functools.partial(lambda row: stacked(ablated_frames(row)), row)
+               for row in fit_ablations},
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
             "oracle target": lambda: stream(oracle_rig, raw_joints, clouds),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),

@@ -25,6 +25,7 @@ from minretarget.fit import FitSettings, body_model, check_fit_settings, track
 from minretarget.metrics import crossed_feet, evaluate, foot_contacts, foot_speeds, joint_errors
 from minretarget.retargeter import Retargeter
 from minretarget.weights import load_weights
+from minretarget.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import CONTACT_HEIGHT, command_line, write_text  # noqa: E402
@@ -44,7 +45,7 @@ def score(settings, sequence, reading, weights):
     start = time.perf_counter()
     fitted, won = track(body_model(), settings, clouds, reading)
     seconds = time.perf_counter() - start
-    retargeter = Retargeter(weights, smoothing=None, denoise=False)
+    retargeter = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
     retargeter.set_target(sequence["target_tpose_points"])
     frames = [retargeter.step_skeleton(joints) for joints in fitted]
     joints = np.stack([f.joints for f in frames])

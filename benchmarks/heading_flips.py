@@ -36,6 +36,7 @@ from minretarget.conventions import JOINT_INDEX
 from minretarget.heading import heading_angles, wrapped
 from minretarget.metrics import FOOT_JOINTS
 from minretarget.retargeter import Retargeter
+from minretarget.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import (add_report_option, command_line, load_measured,  # noqa: E402
@@ -78,9 +79,10 @@ def row_skeletons(weights, sequence):
     clouds = sequence["source_points"]
     readings = Retargeter(weights, warn=False).skeleton(clouds)
     rows = {"SKR and refiner": readings,
-            "SKR alone": Retargeter(weights, warn=False, refine=False).skeleton(clouds)}
+            "SKR alone": Retargeter(weights, PipelineConfig(refine=False, denoise=False),
+                warn=False).skeleton(clouds)}
     for row, check in ((ROWS[2], True), (ROWS[3], False)):
-        retargeter = Retargeter(weights, warn=False, facing_check=check)
+        retargeter = Retargeter(weights, PipelineConfig(facing_check=check), warn=False)
         retargeter.set_target(sequence["target_tpose_points"])   # SMRM's input is the same
         rows[row] = np.stack([retargeter.step_skeleton(joints, cloud).source_joints
                               for joints, cloud in zip(readings, clouds)])

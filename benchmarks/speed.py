@@ -19,9 +19,9 @@ time, as online use), with N threads everywhere (BLAS under numba, torch, onnxru
   * offline throughput: whole sequences through ``Retargeter.retarget_sequence``.
 --neighbour measures only this, without torch: the shipped sample's 68 clouds (P = 2,048,
 V = 13,718) streamed through ``Retargeter.step`` with 1 and 2 BLAS threads, alone and beside
-a busy neighbour (another process spinning on one core, as on a shared machine), with and
-without the source fit (``fit_source=FitSettings()``, smoothing and denoiser off): median ms
-per frame after the fit's calibration frames, and those frames' total.
+a busy neighbour (another process spinning on one core, as on a shared machine), with the
+``regressed`` and ``fitted`` pipeline presets (``minretarget.pipeline``): median ms per frame
+after the fit's calibration frames, and those frames' total.
 Ratios > 1 mean minretarget is faster. Without --weights it uses the shipped weights.
 Needs the ``bench`` extra (torch, onnxruntime, onnxscript, threadpoolctl).
 """
@@ -337,14 +337,13 @@ def offline_fps(retargeter, frames, length=256):
 
 # ----------------------------------------------------------------------------- neighbour
 
-def sample_stream_times(weights, fit_source, blas_threads):
+def sample_stream_times(weights, preset, blas_threads):
     """(median ms per frame after the calibration frames, seconds of those frames) of the
     shipped sample streamed through ``Retargeter.step``, after one warm-up pass."""
     source, target_points, faces, _ = load_sample()
     clouds = list(source.frames)
     kept = FitSettings().calibration_frames
-    options = dict(fit_source=FitSettings(), smoothing=None, denoise=False) if fit_source else {}
-    retargeter = Retargeter(weights, warn=False, **options)
+    retargeter = Retargeter(weights, preset, warn=False)
     retargeter.set_target(target_points, faces)
     with threadpool_limits(blas_threads, user_api="blas"):
         for points in clouds[:kept + 2]:                                  # warm-up
@@ -359,24 +358,24 @@ def sample_stream_times(weights, fit_source, blas_threads):
 
 
 def neighbour_times(weights):
-    """ms per frame for each (fit, BLAS threads, busy neighbour) on the shipped sample."""
+    """ms per frame for each (preset, BLAS threads, busy neighbour) on the shipped sample."""
     rows = []
-    for fit_source in (False, True):
+    for preset in ("regressed", "fitted"):
         for blas_threads in (1, 2):
             for busy in (False, True):
                 neighbour = (subprocess.Popen([sys.executable, "-c", "while True: pass"])
                              if busy else None)
                 try:
-                    ms, calibration_s = sample_stream_times(weights, fit_source, blas_threads)
+                    ms, calibration_s = sample_stream_times(weights, preset, blas_threads)
                 finally:
                     if neighbour is not None:
                         neighbour.kill()
                         neighbour.wait()
-                rows.append({"source_fit": fit_source, "blas_threads": blas_threads,
+                rows.append({"preset": preset, "blas_threads": blas_threads,
                              "busy_neighbour": busy, "ms_per_frame": ms,
                              "fps": 1e3 / ms, "first_frames_s": calibration_s,
                              "load_average": os.getloadavg()})
-                print(f"source fit {fit_source!s:>5}, BLAS threads {blas_threads}, busy "
+                print(f"{preset:>9}, BLAS threads {blas_threads}, busy "
                       f"neighbour {busy!s:>5}: {ms:7.2f} ms/frame ({1e3 / ms:6.1f} frames/s); "
                       f"first {FitSettings().calibration_frames} frames {calibration_s:.2f} s",
                       flush=True)

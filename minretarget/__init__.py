@@ -9,11 +9,14 @@
 See minretarget.conventions for units, axes, joint order and quaternion order.
 """
 from .contacts import FootLock
+from .fit import FitSettings
+from .pipeline import PRESETS, PipelineConfig
 from .retargeter import RetargetedFrame, Retargeter, Target
 from .smoothing import Smoothing
 from .validation import InputWarning, TPoseWarning, UnitsWarning, UpAxisWarning
 from .weights import load_weights, save_weights
 
-__all__ = ["Retargeter", "RetargetedFrame", "Target", "Smoothing", "FootLock", "load_weights",
+__all__ = ["Retargeter", "RetargetedFrame", "Target", "PipelineConfig", "PRESETS", "Smoothing",
+           "FootLock", "FitSettings", "load_weights",
            "save_weights", "InputWarning", "UnitsWarning", "UpAxisWarning", "TPoseWarning"]
 __version__ = "0.1.0"

@@ -69,7 +69,7 @@ import numpy as np
 from .atomic import atomic_write
 from .bodies import body_names
 from .checkpoint import CHECKPOINT
-from .cli import (add_retarget_arguments, blas_threads, int_at_least, pipeline_settings,
+from .cli import (add_retarget_arguments, blas_threads, int_at_least, pipeline_config,
                   retarget_to_files, set_target, source_of, target_of)
 from .extras import MissingExtra, require
 from .outputs import frame_name, parse_formats, previous_outputs
@@ -384,9 +384,11 @@ _REPORT = [None]   # report((pair name, frames done)) to the batch, or None
 
 def start_worker(report=None):
     """Set up a worker process: one BLAS and one numba thread (the cores go to the workers),
-    and where progress goes (``report((pair name, frames done))``)."""
-    require("threadpoolctl", "minretarget batch").threadpool_limits(1)
+    and where progress goes (``report((pair name, frames done))``). numba's first, as setting
+    its threads loads its threading layer (OpenMP's libgomp here), which the limit then
+    reaches too: every thread pool that threadpoolctl sees in a worker says 1 thread."""
     numba.set_num_threads(1)
+    require("threadpoolctl", "minretarget batch").threadpool_limits(1)
     _REPORT[0] = report
 
 
@@ -416,7 +418,7 @@ def _retargeter(args):
     the worker's copy of its weights."""
     if args.weights not in _WEIGHTS:
         _WEIGHTS[args.weights] = load_weights(args.weights)
-    return Retargeter(_WEIGHTS[args.weights], warn=False, **pipeline_settings(args))
+    return Retargeter(_WEIGHTS[args.weights], pipeline_config(args), warn=False)
 
 
 def _set_target(retargeter, args, points, faces, space):

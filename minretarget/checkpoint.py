@@ -41,6 +41,7 @@ from .conventions import NUM_JOINTS
 from .formats.npz import ARCHIVE_ERRORS, load_npz
 from .outputs import previous_outputs, remove_outputs
 from .smoothing import Smoothing
+from .pipeline import PipelineConfig
 from .smrm import MotionState, check_state
 from .units import CANONICAL
 from .weights import flatten_weights
@@ -155,18 +156,14 @@ def same_source(then, now, frames_done):
     return then[:frames_done] == now[:frames_done] if len(now) > 1 else then == now
 
 
-def run_record(source, target, weights, formats, space, points, seed, smoothing=None,
-               foot_lock=None, mirror_source=False, refine=True, denoise=True, rest_pose=True,
-               facing_check=True, skeleton_map=None, fit_source=None):
+def run_record(source, target, weights, formats, space, points, seed, config=PipelineConfig(),
+               skeleton_map=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count, rate, units and up axis, a BVH's skeleton map, and its files' sizes
-    and times: ``source_stamp``), the target and weights
-    (SHA-256 of their arrays), the formats, units, up axis, the resampling, the smoothing
-    (``smoothing.Smoothing`` or None), the foot contacts (``contacts.FootLock`` or None),
-    whether SKR also runs on the source's mirror images, whether its joints are refined,
-    whether they are denoised, whether SMRM's prior allows for the rest poses and whether
-    a cloud's skeleton facing far from the tracked one is read again (skeleton sources:
-    never, so not recorded)."""
+    and times: ``source_stamp``), the target and weights (SHA-256 of their arrays), the
+    formats, units, up axis, the resampling, and the pipeline (``pipeline.PipelineConfig``:
+    the settings that change the result with these weights and this kind of source)."""
+    fitted = config.fit_source is not None and source.kind == "points"
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             # Recorded only when not canonical, so runs from before it match their checkpoints.
@@ -177,18 +174,19 @@ def run_record(source, target, weights, formats, space, points, seed, smoothing=
             "weights_sha256": _digest(flatten_weights(weights).values()),
             "formats": list(formats), "units": space.units, "up_axis": space.up_axis,
             "points": points, "seed": seed,
-            "smoothing": None if smoothing is None else list(smoothing),
-            "foot_lock": None if foot_lock is None else list(foot_lock),
-            "mirror_source": bool(mirror_source),
+            "smoothing": None if config.smoothing is None else list(config.smoothing),
+            "foot_lock": None if config.foot_lock is None else list(config.foot_lock),
+            "mirror_source": config.mirror_source,
             # Recorded only when it changes the result, so runs from before the refiner and
             # runs with weights that have none still match their checkpoints.
-            **({"refine": True} if refine and weights.refine is not None else {}),
-            **({"denoise": True} if denoise and weights.denoise is not None else {}),
-            **({"rest_pose": True} if rest_pose and weights.rest_pose is not None else {}),
-            **({"facing_check": True} if facing_check and source.kind == "points" else {}),
+            **({"refine": True} if config.refine and weights.refine is not None else {}),
+            **({"denoise": True} if config.denoise and weights.denoise is not None else {}),
+            **({"rest_pose": True} if config.rest_pose and weights.rest_pose is not None
+               else {}),
+            **({"facing_check": True} if config.facing_check and source.kind == "points"
+               else {}),
             # Recorded only when on, as the others (skeleton sources are never fitted).
-            **({"source_fit": list(fit_source)}
-               if fit_source is not None and source.kind == "points" else {})}
+            **({"source_fit": list(config.fit_source)} if fitted else {})}
 
 
 def save_checkpoint(out_dir, run, state, frames_done, track, fit_state=None):

@@ -59,6 +59,7 @@ from .fit import FitSettings, body_model
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
                       previous_outputs)
 from .render import render
+from .pipeline import PipelineConfig
 from .retargeter import Retargeter
 from .skeletons import canonical_world, mapping_lines, skeleton_of
 from .smoothing import Smoothing
@@ -71,21 +72,17 @@ from .weights import DEFAULT_WEIGHTS
 DEFAULT_FORMATS = "ply,npz,glb,bvh"
 
 
-def load_retargeter(weights=None, smoothing=Smoothing(), foot_lock=FootLock(),
-                    mirror_source=False, refine=True, denoise=True, rest_pose=True,
-                    facing_check=True, fit_source=None):
-    """A Retargeter with ``weights`` (None: the shipped default), or FileNotFoundError saying
-    what to do when the default weights are not installed."""
+def load_retargeter(weights=None, config="default"):
+    """A Retargeter with ``weights`` (None: the shipped default) and the pipeline ``config``
+    (``pipeline.PipelineConfig`` or a preset's name), or FileNotFoundError saying what to do
+    when the default weights are not installed."""
     if weights is None and not DEFAULT_WEIGHTS.is_file():
         raise FileNotFoundError(
             f"the default weights are not installed ({DEFAULT_WEIGHTS} is missing): they ship "
             "with minretarget once the model is trained. Pass --weights FILE to use a weights "
             "file of your own (python -m training.train ... exports one).")
     # warn=False: the command line checks the inputs itself, naming files and options.
-    return Retargeter.from_weights(weights, warn=False, smoothing=smoothing,
-                                   foot_lock=foot_lock, mirror_source=mirror_source,
-                                   refine=refine, denoise=denoise, rest_pose=rest_pose,
-                                   facing_check=facing_check, fit_source=fit_source)
+    return Retargeter.from_weights(weights, config, warn=False)
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL, tpose_joints=None,
@@ -139,8 +136,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
 
     Args:
         retargeter: Retargeter with weights and a target (``set_target``); for a skeleton
-            source its ``smoothing`` and ``denoise`` are switched off (clean joints: smoothing
-            would only lag, and the denoiser learned SKR's errors).
+            source its config's ``smoothing`` and ``denoise`` are switched off (clean joints:
+            smoothing would only lag, and the denoiser learned SKR's errors).
         open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.
@@ -162,13 +159,9 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     if source.kind != "points":
         # A skeleton source is clean: smoothing would only lag, and the denoiser learned SKR's
         # errors, not its.
-        retargeter.smoothing, retargeter.denoise = None, False
+        retargeter.config = retargeter.config.replace(smoothing=None, denoise=False)
     run = run_record(source, retargeter.target, retargeter.weights, formats, space,
-                     smoothing=retargeter.smoothing, foot_lock=retargeter.foot_lock,
-                     mirror_source=retargeter.mirror_source, refine=retargeter.refine,
-                     denoise=retargeter.denoise, rest_pose=retargeter.rest_pose,
-                     facing_check=retargeter.facing_check, fit_source=retargeter.fit_source,
-                     **settings)
+                     config=retargeter.config, **settings)
     # Before the folder is touched (a Ctrl-C in a cold cache's compile leaves it as it was)
     # and before the progress bar starts.
     retargeter.warm_up(skeleton=source.kind != "points")
@@ -272,18 +265,18 @@ def file_space(points, name, role, units=None, up_axis=None, force=False, min_po
     return space
 
 
-def pipeline_settings(args):
-    """The Retargeter settings that ``retarget``'s parsed options ``args`` ask for: the
-    keywords of ``load_retargeter`` (and of ``Retargeter``) but ``weights``."""
+def pipeline_config(args):
+    """The pipeline (``pipeline.PipelineConfig``) that ``retarget``'s parsed options ``args``
+    ask for."""
     foot_lock = None if args.no_foot_lock else FootLock()
     if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
         foot_lock = foot_lock._replace(max_offset=args.foot_leash)
     fitted = args.source_fit      # the fit's skeleton is neither smoothed nor denoised
-    return {"smoothing": None if args.no_smoothing or fitted else Smoothing(),
-            "foot_lock": foot_lock, "mirror_source": args.mirror_source,
-            "refine": not args.no_refine, "denoise": not (args.no_denoise or fitted),
-            "rest_pose": not args.no_rest_pose, "facing_check": not args.no_facing_check,
-            "fit_source": FitSettings() if fitted else None}
+    return PipelineConfig(
+        smoothing=None if args.no_smoothing or fitted else Smoothing(), foot_lock=foot_lock,
+        mirror_source=args.mirror_source, refine=not args.no_refine,
+        denoise=not (args.no_denoise or fitted), rest_pose=not args.no_rest_pose,
+        facing_check=not args.no_facing_check, fit_source=FitSettings() if fitted else None)
 
 
 def target_of(args):
@@ -330,7 +323,7 @@ def _retarget(args):
     start = time.perf_counter()
     space = make_space(args.out_units, args.out_up)
     formats = parse_formats(args.format)
-    retargeter = load_retargeter(args.weights, **pipeline_settings(args))
+    retargeter = load_retargeter(args.weights, pipeline_config(args))
     points, faces, target_space = target_of(args)
     set_target(retargeter, points, faces, args.target, target_space)
     open_at, _, settings = source_of(args)
@@ -392,7 +385,7 @@ def _warmup(args):
     _, target_points, target_faces, _ = load_sample()
     retargeter.set_target(target_points, target_faces)
     for mirror_source, skeleton in ((False, False), (True, False), (False, True)):
-        retargeter.mirror_source = mirror_source
+        retargeter.config = retargeter.config.replace(mirror_source=mirror_source)
         retargeter.warm_up(skeleton)
     print(f"kernels ready in {time.perf_counter() - start:.1f} s; later runs load them from "
           "numba's cache")

@@ -11,16 +11,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .contacts import FootLock, check_foot_lock, plant_feet
+from .contacts import plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
-from .fit import LOST_COST, body_model, check_fit_settings, fit_frame, start_fit
+from .fit import LOST_COST, body_model, fit_frame, start_fit
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
+from .pipeline import as_config, check_pipeline
 from .refine import refine_joints
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import mirror_averaged, regress_joints
-from .smoothing import Smoothing, check_smoothing
 from .smrm import check_state, retarget_step
 from .validation import FitWarning, as_float32_array, as_point_cloud, as_workers, check_body
 from .weights import Weights, load_weights
@@ -43,76 +43,47 @@ class RetargetedFrame(NamedTuple):
 
 
 class Retargeter:
-    def __init__(self, weights, warn=True, workers=1, smoothing=Smoothing(),
-                 foot_lock=FootLock(), mirror_target=True, mirror_source=False, refine=True,
-                 denoise=True, rest_pose=True, facing_check=True, fit_source=None):
-        """``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
+    def __init__(self, weights, config="default", *, warn=True, workers=1):
+        """``weights``: a ``weights.Weights`` (``load_weights``; ``from_weights`` reads a file).
+        ``config``: the pipeline (``pipeline.PipelineConfig``, or a preset's name: "default",
+        "paper", "regressed", "fitted"), checked against what the weights were trained for
+        (``pipeline.check_pipeline``); ``config`` can be set again between streams.
+        ``warn``: issue ``validation.InputWarning``s for a target or a stream's first frame
         that looks like wrong units, a wrong up axis or (targets) not a T-pose.
         ``workers``: threads sharing SKR's work on each cloud (``skr.regress_joints``; give
-        BLAS one thread when > 1).
-        ``smoothing``: the source skeleton's smoothing over time (``smoothing.Smoothing``:
-        against SKR's frame-to-frame jitter), or None for the joints as they come (the
-        paper's pipeline and the torch reference).
-        ``foot_lock``: foot contacts (``contacts.FootLock``: a foot that stops on the ground
-        stays put; the legs are bent to hold it), or None for SMRM's rotations as they come
-        (the paper's pipeline and the torch reference).
-        ``mirror_target``: find the target's skeleton with SKR on its T-pose and on the
-        mirror image of it, averaged (``skr.mirror_averaged``), or False for SKR once
-        (the paper's pipeline and the torch reference).
-        ``mirror_source``: the same for every source frame: SKR's time doubles (with
-        ``workers=2`` the cloud and its mirror image run side by side), for 1.3 mm of
-        PA-MPJPE and 1.0 mm/frame^2 of Acc on the test benchmark (README, Results).
-        ``refine``: move SKR's joints with the weights' joint refiner (``refine``), if they
-        have one; False for SKR's joints as they are (the paper's pipeline).
-        ``denoise``: pass the smoothed source skeleton through the weights' denoiser
-        (``denoise``: a GRU trained on SKR's skeletons of moving bodies), if they have one;
-        False to hand SMRM the smoothed skeleton (the paper's pipeline). Set it before a stream
-        starts (or ``reset()``): a stream refuses a denoiser other than the one it began with.
-        ``rest_pose``: let SMRM's analytic prior allow for the two bodies' rest poses with the
-        weights' rest-pose model (``rest_pose``), if they have one; False for the plain
-        analytic prior (the paper has neither).
-        ``facing_check``: in a stream, read a source cloud again half turned when SKR's
-        skeleton of it faces far from the heading kept so far, and keep the reading that
-        faces nearer (``facing``: SKR now and then reads a body backwards); False for every
-        reading as it comes (the paper's pipeline).
-        ``fit_source``: a ``fit.FitSettings`` to track the shipped body model in every source
-        cloud after SKR (and the refiner and facing check) and hand its joints on (``fit``:
-        fixed bone lengths, left and right kept), or None (the default) for SKR's reading.
-        Only frames with a cloud are fitted (``step``, or ``step_skeleton`` given points).
-        Its state is ``fit_state``, apart from ``state``."""
+        BLAS one thread when > 1)."""
         if not isinstance(weights, Weights):
             raise TypeError(f"weights must be a minretarget.weights.Weights (load_weights(path)),"
                             f" got {type(weights).__name__}; Retargeter.from_weights(path) "
                             "reads a file")
-        for name, value in (("warn", warn), ("mirror_target", mirror_target),
-                            ("mirror_source", mirror_source), ("refine", refine),
-                            ("denoise", denoise), ("rest_pose", rest_pose),
-                            ("facing_check", facing_check)):
-            if not isinstance(value, (bool, np.bool_)):
-                raise TypeError(f"{name} must be True or False, got {value!r}")
+        if not isinstance(warn, (bool, np.bool_)):
+            raise TypeError(f"warn must be True or False, got {warn!r}")
         self.weights = weights
-        self.warn = warn
+        self.warn = bool(warn)
         self.workers = as_workers(workers)
-        self.smoothing = check_smoothing(smoothing)
-        self.foot_lock = check_foot_lock(foot_lock)
-        self.mirror_target = bool(mirror_target)
-        self.mirror_source = bool(mirror_source)
-        self.refine = bool(refine)
-        self.denoise = bool(denoise)
-        self.rest_pose = bool(rest_pose)
-        self.facing_check = bool(facing_check)
-        self.fit_source = check_fit_settings(fit_source)
+        self._config = None
+        self.config = config
         self.target = None
         self.reset()
 
     @classmethod
-    def from_weights(cls, path=None, warn=True, workers=1, smoothing=Smoothing(),
-                     foot_lock=FootLock(), mirror_target=True, mirror_source=False,
-                     refine=True, denoise=True, rest_pose=True, facing_check=True,
-                     fit_source=None):
+    def from_weights(cls, path=None, config="default", *, warn=True, workers=1):
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
-        return cls(load_weights(path), warn, workers, smoothing, foot_lock, mirror_target,
-                   mirror_source, refine, denoise, rest_pose, facing_check, fit_source)
+        return cls(load_weights(path), config, warn=warn, workers=workers)
+
+    @property
+    def config(self):
+        """The pipeline this retargeter runs (``pipeline.PipelineConfig``)."""
+        return self._config
+
+    @config.setter
+    def config(self, config):
+        config = check_pipeline(self.weights, as_config(config))
+        if self._config is not None and self._state is not None and (
+                self._config.denoise != config.denoise and self.weights.denoise is not None):
+            raise ValueError("a stream keeps the denoiser it began with: call reset() before "
+                             "switching denoise")
+        self._config = config
 
     def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
         """Set the body to animate and restart the stream.
@@ -137,7 +108,7 @@ class Retargeter:
             # No triangles is a point cloud, as the file readers give it.
             faces = faces.astype(np.int64) if len(faces) else None
         if tpose_joints is None:
-            tpose_joints = self._skr(points, self.mirror_target)
+            tpose_joints = self._skr(points, self.config.mirror_target)
         tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
         if skin_weights is None:
             skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
@@ -178,7 +149,7 @@ class Retargeter:
             self.target.points[::max(1, len(self.target.points) // 1024)])
         for _ in range(2):
             joints = self.target.tpose_joints if skeleton else self._skr(points,
-                                                                         self.mirror_source)
+                                                                         self.config.mirror_source)
             self._step_joints(joints, None if skeleton else points)
         self.reset()
 
@@ -203,12 +174,12 @@ class Retargeter:
     @property
     def denoiser(self):
         """The weights' denoiser if ``denoise`` is on and they have one, else None."""
-        return self.weights.denoise if self.denoise else None
+        return self.weights.denoise if self.config.denoise else None
 
     @property
     def rest_pose_model(self):
         """The weights' rest-pose model if ``rest_pose`` is on and they have one, else None."""
-        return self.weights.rest_pose if self.rest_pose else None
+        return self.weights.rest_pose if self.config.rest_pose else None
 
     def step(self, points):
         """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
@@ -217,7 +188,7 @@ class Retargeter:
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
-        return self._step_joints(self._skr(points, self.mirror_source), points)
+        return self._step_joints(self._skr(points, self.config.mirror_source), points)
 
     def step_skeleton(self, source_joints, points=None):
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
@@ -256,7 +227,7 @@ class Retargeter:
         if points.ndim not in (2, 3) or points.shape[-2] < MIN_POINTS or not len(points):
             raise ValueError(f"source points must have shape (P, 3) or (T, P, 3) with T >= 1 "
                              f"and P >= {MIN_POINTS}, got {points.shape}")
-        return self._skr(points, self.mirror_source)
+        return self._skr(points, self.config.mirror_source)
 
     def _skr(self, points, mirrored):
         """The skeletons of (P, 3) or (B, P, 3) clouds: SKR, then the refiner (if the weights
@@ -264,7 +235,7 @@ class Retargeter:
         mirror image, averaged (``skr.mirror_averaged``)."""
         def skeleton(clouds):
             joints = regress_joints(clouds, self.weights.skr, self.workers)
-            if self.refine and self.weights.refine is not None:
+            if self.config.refine and self.weights.refine is not None:
                 joints = refine_joints(clouds, joints, self.weights.refine,
                                        self.weights.config.refine_neighbours)
             return joints
@@ -274,31 +245,32 @@ class Retargeter:
         """The facing check (given the frame's ``points``), smoothing, denoising, SMRM then
         the foot contacts on one frame's source skeleton -> rotations, root."""
         self._check_owner()
-        if self.facing_check and points is not None:
+        if self.config.facing_check and points is not None:
             reference, away = ((np.nan, 0) if self._state is None else
                                (self._state.facing_reference, self._state.facing_away_frames))
             # step and step_skeleton have checked the joints and the cloud already
             source_joints, reference, away = _check_facing(
                 source_joints, points, reference, away,
-                lambda clouds: self._skr(clouds, self.mirror_source), TRIGGER, CONFIRM)
+                lambda clouds: self._skr(clouds, self.config.mirror_source), TRIGGER, CONFIRM)
         else:      # tracked all the same, so that the check can be switched on mid-stream
             reference, away = float(heading_angles(source_joints)), 0
-        if self.fit_source is not None and points is not None:
+        if self.config.fit_source is not None and points is not None:
             source_joints = self._fit(points, source_joints)
         rotations, root, state = retarget_step(self.weights.smrm, self._state, source_joints,
-                                               self.target.tpose_joints, self.smoothing,
+                                               self.target.tpose_joints, self.config.smoothing,
                                                self.denoiser, self.rest_pose_model)
         self._state = state._replace(facing_reference=reference, facing_away_frames=away)
         rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
-                                            self._state, self.foot_lock)
+                                            self._state, self.config.foot_lock)
         return rotations, root
 
     def _fit(self, points, reading):
         """The source fit on one cloud and its reading -> the fitted joints (J, 3) float32."""
         if self.fit_state is None:
-            self.fit_state, joints = start_fit(body_model(), self.fit_source, points, reading)
+            self.fit_state, joints = start_fit(body_model(), self.config.fit_source, points,
+                                               reading)
         else:
-            self.fit_state, joints, _ = fit_frame(body_model(), self.fit_source,
+            self.fit_state, joints, _ = fit_frame(body_model(), self.config.fit_source,
                                                   self.fit_state, points, reading)
         if self.fit_state.cost > LOST_COST:
             warnings.warn(f"frame {self.fit_state.frames - 1}: the source fit found no body "
@@ -345,7 +317,7 @@ class Retargeter:
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
-        source_joints = self._skr(frames, self.mirror_source)
+        source_joints = self._skr(frames, self.config.mirror_source)
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)
         for t, joints in enumerate(source_joints):

@@ -14,6 +14,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from reference_models import random_reference, random_stream  # noqa: E402
 
+from minretarget.pipeline import UNCOUPLED  # noqa: E402
 from training.export import export_weights  # noqa: E402
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -34,7 +35,8 @@ def main():
     model = random_reference(seed=0)
     target, sources = random_stream(seed=0)
     export_weights(GOLDEN / "tiny_weights.npz", model.skr, model.smrm, model.skin,
-                   metadata={"purpose": "tests: random tiny model", "seed": 0},
+                   metadata={"purpose": "tests: random tiny model", "seed": 0,
+                             "pipeline": UNCOUPLED},
                    refine=model.refine, denoise=model.denoise)
     outputs = reference_outputs(model, target, sources)
     counts = np.array([len(s) for s in sources])

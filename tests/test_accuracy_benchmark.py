@@ -314,7 +314,7 @@ def test_the_analytic_row_is_the_model_with_smrms_networks_turned_to_identity(ti
         root_head=Dense(np.zeros_like(heads.root_head.weight),
                         np.zeros_like(heads.root_head.bias))))
     retargeter = Retargeter(weights, warn=False)
-    foot_lock = accuracy.foot_lock_of(retargeter)
+    foot_lock = retargeter.config.foot_lock
     assert retargeter.rest_pose_model is not None and foot_lock is not None
     target_points, _, _ = tiny_stream
     retargeter.set_target(target_points)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import CMU_DIR, GOLDEN, needs_cmu, with_rest_pose
-from minretarget import Retargeter
+from minretarget import PipelineConfig, Retargeter
 from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
 from minretarget.contacts import FootLock
@@ -165,7 +165,7 @@ def option_matches_the_api(inputs, monkeypatch, option, setting, weights):
                    "--out", out, "--format", "npz", "--weights", weights, "--overwrite",
                    *options) == 0
         results[options] = load(out / "result.npz")
-    retargeter = Retargeter.from_weights(weights, **{"foot_lock": EAGER, **setting})
+    retargeter = Retargeter.from_weights(weights, PipelineConfig(foot_lock=EAGER).replace(**setting))
     retargeter.set_target(inputs["target"], inputs["faces"])
     expected = list(retargeter.run(inputs["frames"]))
     for field in ("rotations", "vertices"):

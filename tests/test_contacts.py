@@ -9,6 +9,7 @@ from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
 from minretarget.retargeter import Retargeter
 from minretarget.smrm import MotionState
+from minretarget.pipeline import PipelineConfig
 
 LEG_JOINTS = [JOINT_INDEX[f"{side}_{name}"] for side in ("left", "right")
               for name in ("hip", "knee", "ankle")]
@@ -216,9 +217,9 @@ def test_the_retargeter_plants_feet_and_resumes_exactly(tiny_weights, tiny_strea
     """In the stream: with the lock off the rotations are SMRM's alone; a state saved mid-way
     and set on another retargeter continues with the same frames, foot contacts included."""
     target, frames, _ = tiny_stream
-    plain = Retargeter(tiny_weights, warn=False, foot_lock=None)
-    locked = Retargeter(tiny_weights, warn=False, foot_lock=FootLock(5.0, 5.0, 12.0, 1.0,
-                                                                     1.0, 0.5))
+    plain = Retargeter(tiny_weights, PipelineConfig(foot_lock=None), warn=False)
+    locked = Retargeter(tiny_weights, PipelineConfig(foot_lock=FootLock(5.0, 5.0, 12.0, 1.0,
+                                                                     1.0, 0.5)), warn=False)
     for retargeter in (plain, locked):
         retargeter.set_target(target)
     plain_frames = [plain.step(points) for points in frames]
@@ -231,7 +232,7 @@ def test_the_retargeter_plants_feet_and_resumes_exactly(tiny_weights, tiny_strea
     locked.reset()
     for points in frames[:middle]:
         locked.step(points)
-    other = Retargeter(tiny_weights, warn=False, foot_lock=locked.foot_lock)
+    other = Retargeter(tiny_weights, PipelineConfig(foot_lock=locked.config.foot_lock), warn=False)
     other.set_target(target)
     other.state = locked.state
     for points, expected in zip(frames[middle:], locked_frames[middle:]):

@@ -6,6 +6,7 @@ from conftest import facing
 from minretarget.conventions import NUM_JOINTS
 from minretarget.facing import CONFIRM, TRIGGER, check_facing, half_turned
 from minretarget.heading import heading_angles, heading_features, wrapped
+from minretarget.pipeline import PipelineConfig
 from minretarget.retargeter import Retargeter
 
 
@@ -94,7 +95,8 @@ class ScriptedRetargeter(Retargeter):
     and ``seconds`` (frame t's cloud half turned -> facing(seconds[t] + pi, seed=100 + t),
     which turned back faces seconds[t]); records the mirrored flags it is called with."""
     def __init__(self, weights, clouds, readings, seconds, **options):
-        super().__init__(weights, warn=False, smoothing=None, denoise=False, **options)
+        super().__init__(weights, PipelineConfig(smoothing=None, denoise=False, **options),
+                         warn=False)
         self.answers = [(c, facing(h, seed=t)) for t, (c, h) in enumerate(zip(clouds, readings))]
         self.answers += [(half_turned(c, c.mean(axis=0)), facing(h + np.pi, seed=100 + t))
                          for t, (c, h) in enumerate(zip(clouds, seconds))]
@@ -154,7 +156,8 @@ class FlippingRetargeter(Retargeter):
     """SKR replaced: frame 0's cloud reads as facing 0, frame 1's as facing pi (backwards),
     and frame 1's cloud half turned as facing pi + 0.2 (0.2 once turned back)."""
     def __init__(self, weights, clouds, **options):
-        super().__init__(weights, warn=False, smoothing=None, denoise=False, **options)
+        super().__init__(weights, PipelineConfig(smoothing=None, denoise=False, **options),
+                         warn=False)
         centre = clouds[1].mean(axis=0)
         self.answers = [(clouds[0], facing(0.0)), (clouds[1], facing(np.pi, seed=1)),
                         (half_turned(clouds[1], centre), facing(np.pi + 0.2, seed=2))]

@@ -7,6 +7,7 @@ from minretarget.nearest import build_grid
 from minretarget import fit
 from minretarget.conventions import NUM_JOINTS
 from minretarget.kinematics import quaternion_to_matrix
+from minretarget.pipeline import PipelineConfig
 
 import twins
 
@@ -261,8 +262,9 @@ def test_retargeter_hands_smrm_the_fit_of_its_readings(sample_clouds):
     from minretarget.weights import load_weights
     clouds, target = sample_clouds
     settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
-    retargeter = Retargeter(load_weights(), smoothing=None, denoise=False, facing_check=False,
-                            foot_lock=None, fit_source=settings)
+    retargeter = Retargeter(load_weights(), PipelineConfig(smoothing=None, denoise=False,
+                                                           facing_check=False, foot_lock=None,
+                                                           fit_source=settings))
     retargeter.set_target(target)
     seen = np.stack([frame.source_joints for frame in retargeter.run(clouds)])
     fitted, _ = fit.track(fit.body_model(), settings, clouds, retargeter.skeleton(clouds))
@@ -277,15 +279,16 @@ def test_retargeter_hands_smrm_the_fit_of_its_readings(sample_clouds):
 def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
     from minretarget.retargeter import Retargeter
     with pytest.raises(TypeError, match="fit_source must be a fit.FitSettings"):
-        Retargeter(tiny_weights, fit_source="yes")
+        Retargeter(tiny_weights, PipelineConfig(fit_source="yes"))
     with pytest.raises(TypeError, match="weights must be a minretarget.weights.Weights.*str"):
         Retargeter("weights.npz")
     with pytest.raises(TypeError, match="refine must be True or False, got 'no'"):
-        Retargeter(tiny_weights, refine="no")
+        Retargeter(tiny_weights, PipelineConfig(refine="no"))
     for field, value in (("iterations", 0), ("model_stride", 0), ("robust_width", 0.0),
                          ("reading_pull", -1.0), ("settle_rounds", -1)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
-            Retargeter(tiny_weights, fit_source=fit.FitSettings()._replace(**{field: value}))
+            Retargeter(tiny_weights, PipelineConfig(
+                fit_source=fit.FitSettings()._replace(**{field: value})))
 
 
 def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):
@@ -293,8 +296,8 @@ def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):
     from minretarget.weights import load_weights
     clouds, target = sample_clouds
     settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
-    first, second = (Retargeter(load_weights(), smoothing=None, denoise=False, foot_lock=None,
-                                fit_source=settings) for _ in range(2))
+    config = PipelineConfig(smoothing=None, denoise=False, foot_lock=None, fit_source=settings)
+    first, second = (Retargeter(load_weights(), config) for _ in range(2))
     for retargeter in (first, second):
         retargeter.set_target(target)
     for points in clouds[:3]:
@@ -314,11 +317,13 @@ def test_a_cloud_without_the_body_is_warned_of_by_frame_and_recovered_from(sampl
     from minretarget.weights import load_weights
     clouds, target = sample_clouds
     settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
-    retargeter = Retargeter(load_weights(), smoothing=None, denoise=False, foot_lock=None,
-                            facing_check=False, fit_source=settings, warn=False)
+    retargeter = Retargeter(load_weights(), PipelineConfig(smoothing=None, denoise=False,
+                                                           foot_lock=None, facing_check=False,
+                                                           fit_source=settings), warn=False)
     retargeter.set_target(target)
-    plain = Retargeter(load_weights(), smoothing=None, denoise=False, foot_lock=None,
-                       facing_check=False, fit_source=settings, warn=False)
+    plain = Retargeter(load_weights(), PipelineConfig(smoothing=None, denoise=False,
+                                                      foot_lock=None, facing_check=False,
+                                                      fit_source=settings), warn=False)
     plain.set_target(target)
     stream = list(clouds)
     stream[3] = stream[3] + [3.0, 0.0, 0.0]           # frame 3 misses the body by 3 m

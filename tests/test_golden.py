@@ -2,6 +2,7 @@
 import numpy as np
 
 from minretarget.retargeter import Retargeter
+from minretarget.pipeline import PipelineConfig
 
 TOLERANCE = 1e-4   # metres
 
@@ -10,8 +11,8 @@ def test_runtime_reproduces_the_golden_torch_stream(tiny_weights, tiny_stream):
     target, sources, want = tiny_stream
     # The torch reference's pipeline: SKR once on the target, no facing check, no smoothing,
     # no foot contacts.
-    retargeter = Retargeter(tiny_weights, smoothing=None, foot_lock=None, mirror_target=False,
-                            facing_check=False)
+    retargeter = Retargeter(tiny_weights, PipelineConfig(smoothing=None, foot_lock=None,
+                                                         mirror_target=False, facing_check=False))
     retargeter.set_target(target)
     np.testing.assert_allclose(retargeter.target.tpose_joints, want["torch_tpose_joints"],
                                atol=TOLERANCE)

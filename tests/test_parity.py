@@ -17,10 +17,15 @@ from minretarget.retargeter import Retargeter  # noqa: E402
 from minretarget.skin import linear_blend_skinning, skinning_weights  # noqa: E402
 from minretarget.skr import regress_joints  # noqa: E402
 from minretarget.weights import load_weights  # noqa: E402
+from minretarget.pipeline import UNCOUPLED, PipelineConfig
 from training import kinematics as torch_kinematics  # noqa: E402
 from training.export import export_weights, runtime_weights  # noqa: E402
 
 TOLERANCE = 1e-4   # metres, on joints and vertices
+
+
+# SMRM's output as it comes, as the torch reference gives it (the denoiser and refiner on).
+RAW = PipelineConfig(smoothing=None, foot_lock=None, mirror_target=False, facing_check=False)
 
 
 @pytest.fixture(scope="module")
@@ -30,10 +35,8 @@ def tiny_model():
 
 def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp_path):
     export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin,
-                   refine=tiny_model.refine, denoise=tiny_model.denoise)
-    retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None,      # as torch
-                                         foot_lock=None, mirror_target=False,
-                                         facing_check=False)
+                   {"pipeline": UNCOUPLED}, refine=tiny_model.refine, denoise=tiny_model.denoise)
+    retargeter = Retargeter.from_weights(tmp_path / "w.npz", RAW)
     target, sources = random_stream(seed=1, frames=60)
     want = reference_outputs(tiny_model, target, sources)
     retargeter.set_target(target)
@@ -60,10 +63,9 @@ def test_smrm_with_the_analytic_prior_matches_torch(tmp_path, rest_pose):
         with torch.no_grad():
             model.smrm.rest_directions.normal_(0.0, 1.0,
                                                generator=torch.Generator().manual_seed(5))
-    export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, refine=model.refine,
-                   denoise=model.denoise)
-    retargeter = Retargeter.from_weights(tmp_path / "w.npz", smoothing=None, foot_lock=None,
-                                         mirror_target=False, facing_check=False)
+    export_weights(tmp_path / "w.npz", model.skr, model.smrm, model.skin, {"pipeline": UNCOUPLED},
+                   refine=model.refine, denoise=model.denoise)
+    retargeter = Retargeter.from_weights(tmp_path / "w.npz", RAW)
     assert retargeter.weights.config.smrm_analytic_prior and retargeter.weights.smrm.analytic_prior
     assert (retargeter.rest_pose_model is not None) == rest_pose
     target, sources = random_stream(seed=4, frames=40)
@@ -107,7 +109,8 @@ def test_golden_files_match_the_current_torch_reference(tiny_model, tiny_weights
     for key, value in want.items():
         np.testing.assert_allclose(golden[f"torch_{key}"], value, atol=1e-5, err_msg=key)
     exported = runtime_weights(tiny_model.skr, tiny_model.smrm, tiny_model.skin,
-                               refine=tiny_model.refine, denoise=tiny_model.denoise)
+                               {"pipeline": UNCOUPLED}, refine=tiny_model.refine,
+                               denoise=tiny_model.denoise)
     flat = lambda weights: np.concatenate([np.ravel(a) for a in leaves(weights)])  # noqa: E731
     np.testing.assert_array_equal(flat(exported), flat(tiny_weights))
 
@@ -176,8 +179,7 @@ def test_paper_size_stages_match_torch(tmp_path):
     np.testing.assert_allclose(joints, want_joints, atol=TOLERANCE)
     np.testing.assert_allclose(skinning_weights(points, joints, weights.skin), want_weights,
                                atol=1e-5)
-    retargeter = Retargeter(weights, smoothing=None, foot_lock=None, mirror_target=False,
-                            facing_check=False)
+    retargeter = Retargeter(weights, RAW)
     retargeter.set_target(points)
     for t in range(10):
         frame = retargeter.step_skeleton(source[0, t].numpy())

@@ -9,6 +9,7 @@ import twins
 from minretarget.checkpoint import run_record
 from minretarget.config import ModelConfig
 from minretarget.conventions import MIRROR, NUM_JOINTS, PARENTS
+from minretarget.pipeline import PipelineConfig
 from minretarget.kinematics import forward_kinematics, matrix_to_quaternion
 from minretarget.rest_pose import (NUM_BONES, NUM_FEATURES, RestPoseWeights, bone_lengths,
                                    prior_reference, rest_pose_features)
@@ -258,7 +259,7 @@ def test_rest_pose_needs_the_analytic_prior_and_is_recorded_only_when_on(prior_w
         path, kind, count, fps, space = __file__, "points", 3, 30.0, make_space("m", "y")
         files = None
     records = [run_record(Source, {"points": tpose_skeleton()}, weights, ["npz"],
-                          make_space("m", "y"), 2048, 0, rest_pose=on)
+                          make_space("m", "y"), 2048, 0, PipelineConfig(rest_pose=on))
                for weights, on in ((prior_weights, True), (prior_weights, False),
                                    (prior_weights._replace(rest_pose=None), True))]
     assert [record.get("rest_pose") for record in records] == [True, None, None]

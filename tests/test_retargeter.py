@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minretarget import Retargeter
+from minretarget import PipelineConfig, Retargeter
 
 
 @pytest.fixture()
@@ -157,7 +157,8 @@ def test_target_skeleton_is_averaged_with_its_mirror_image(tiny_weights, tiny_st
     joints = mirror_averaged(skeleton, symmetric)
     np.testing.assert_allclose(joints[list(MIRROR)] * flip, joints, atol=1e-5)
     for mirror_target, want in ((True, mirror_averaged(skeleton, target)), (False, plain)):
-        retargeter = Retargeter(tiny_weights, warn=False, mirror_target=mirror_target)
+        retargeter = Retargeter(tiny_weights, PipelineConfig(mirror_target=mirror_target),
+            warn=False)
         retargeter.set_target(target)
         np.testing.assert_allclose(retargeter.target.tpose_joints, want, atol=1e-6)
 
@@ -167,8 +168,9 @@ def test_mirror_source_feeds_smrm_the_mirror_averaged_skeleton(tiny_weights, tin
     retarget_sequence agrees with it (refiner off: the previous test covers it)."""
     from minretarget.skr import mirror_averaged, regress_joints
     target, sources, _ = tiny_stream
-    mirrored, by_hand = (Retargeter(tiny_weights, warn=False, mirror_source=True, refine=False),
-                         Retargeter(tiny_weights, warn=False, refine=False))
+    mirrored, by_hand = (Retargeter(tiny_weights, PipelineConfig(mirror_source=True, refine=False),
+        warn=False),
+                         Retargeter(tiny_weights, PipelineConfig(refine=False), warn=False))
 
     def skr(clouds):
         return regress_joints(clouds, tiny_weights.skr)
@@ -192,8 +194,8 @@ def test_skeletons_go_through_the_refiner_unless_refine_is_off(tiny_weights, tin
     from minretarget.skr import mirror_averaged, regress_joints
     target, sources, _ = tiny_stream
     k = tiny_weights.config.refine_neighbours
-    refined, plain = Retargeter(tiny_weights, warn=False), Retargeter(tiny_weights, warn=False,
-                                                                       refine=False)
+    refined = Retargeter(tiny_weights, warn=False)
+    plain = Retargeter(tiny_weights, PipelineConfig(refine=False), warn=False)
     for retargeter in (refined, plain):
         retargeter.set_target(target)
     skr_target = mirror_averaged(lambda c: regress_joints(c, tiny_weights.skr), target)
@@ -227,8 +229,8 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
     from conftest import denoised_stream
     target, sources, _ = tiny_stream
     without = tiny_weights._replace(config=tiny_weights.config.without_denoiser(), denoise=None)
-    on, off, bare = (Retargeter(tiny_weights, warn=False), Retargeter(tiny_weights, warn=False,
-                                                                      denoise=False),
+    on, off, bare = (Retargeter(tiny_weights, warn=False),
+                     Retargeter(tiny_weights, PipelineConfig(denoise=False), warn=False),
                      Retargeter(without, warn=False))
     for retargeter in (on, off, bare):
         retargeter.set_target(target)
@@ -253,11 +255,11 @@ import json, sys
 import numba
 import numpy as np
 from conftest import turned_about_up
-from minretarget import Retargeter
+from minretarget import PipelineConfig, Retargeter
 from minretarget.sources import load_sample
 
 settings, skeleton = json.loads(sys.argv[1]), sys.argv[2] == "skeleton"
-retargeter = Retargeter.from_weights(warn=False, **settings)
+retargeter = Retargeter.from_weights(None, PipelineConfig.from_dict(settings), warn=False)
 source, target, faces, _ = load_sample()
 retargeter.set_target(target, faces)
 retargeter.warm_up(skeleton)
@@ -286,7 +288,7 @@ print(json.dumps(sorted(loaded() - before)))
 @pytest.mark.parametrize("settings, skeleton", [
     ({}, False), ({"mirror_source": True}, False), ({"smoothing": None, "foot_lock": None,
                                                      "refine": False, "denoise": False}, False),
-    ({}, True)])
+    ({"fit_source": {}, "smoothing": None, "denoise": False}, False), ({}, True)])
 def test_warm_up_loads_every_kernel_a_stream_uses(settings, skeleton):
     """In a fresh process, a stream after ``warm_up`` loads no kernel signature that the
     warm-up did not (so that nothing compiles once frames, and a progress bar, are going)."""

@@ -8,6 +8,7 @@ from minretarget.conventions import NUM_JOINTS
 from minretarget.retargeter import Retargeter
 from minretarget.smoothing import Smoothing, check_smoothing, smooth_joints
 from minretarget.smrm import retarget_step
+from minretarget.pipeline import PipelineConfig
 
 
 def run_filter(frames, smoothing):
@@ -88,8 +89,9 @@ def test_stream_smooths_what_smrm_sees(tiny_weights, tiny_stream):
     Retargeter reports them as source_joints; None gives the raw SKR joints."""
     target, sources, _ = tiny_stream
     # SMRM's rotations alone: no foot lock, no denoiser (test_retargeter checks it).
-    raw = Retargeter(tiny_weights, warn=False, smoothing=None, foot_lock=None, denoise=False)
-    smooth = Retargeter(tiny_weights, warn=False, foot_lock=None, denoise=False)
+    raw = Retargeter(tiny_weights, PipelineConfig(smoothing=None, foot_lock=None, denoise=False),
+        warn=False)
+    smooth = Retargeter(tiny_weights, PipelineConfig(foot_lock=None, denoise=False), warn=False)
     raw.set_target(target)
     smooth.set_target(target)
     raw_frames, smooth_frames = list(raw.run(sources[:20])), list(smooth.run(sources[:20]))

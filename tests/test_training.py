@@ -13,6 +13,7 @@ from conftest import with_rest_pose  # noqa: E402
 from minretarget import Retargeter, metrics  # noqa: E402
 from minretarget.conventions import JOINT_INDEX, NUM_JOINTS, PARENTS  # noqa: E402
 from minretarget.weights import flatten_weights, load_weights, save_weights  # noqa: E402
+from minretarget.pipeline import PipelineConfig
 from training import kinematics  # noqa: E402
 from training.losses import foot_velocity_error, rotation_distance, skin_loss  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
@@ -254,7 +255,7 @@ def test_denoiser_learns_from_the_skeletons_the_runtime_smooths(run):
     data = np.load(run / "sequences_val.npz")
     got = smoothed_skeletons(weights.skr, weights.refine, weights.config.refine_neighbours,
                              torch.from_numpy(data["points"]), torch.from_numpy(data["starts"]))
-    retargeter = Retargeter(weights, warn=False, foot_lock=None, denoise=False)
+    retargeter = Retargeter(weights, PipelineConfig(foot_lock=None, denoise=False), warn=False)
     retargeter.set_target(np.random.default_rng(1).normal(size=(100, 3)))
     for a, b in zip(data["starts"][:-1], data["starts"][1:]):
         want = np.stack([f.source_joints for f in retargeter.run(data["points"][a:b])])

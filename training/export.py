@@ -17,6 +17,7 @@ from minretarget.nn import MLP, Dense, GRULayer
 from minretarget.refine import RefinerWeights
 from minretarget.rest_pose import RestPoseWeights
 from minretarget.skr import PointNetWeights, SKRWeights
+from minretarget.smoothing import Smoothing
 from minretarget.smrm import SMRMWeights
 from minretarget.weights import Weights, save_weights, weights_from_arrays, flatten_weights
 
@@ -32,6 +33,16 @@ def with_selection(metadata):
     """A copy of ``metadata`` (a dict, or None) with ``selected_on``: the splits the file
     may be chosen on (``SELECTED_ON``), replacing any an ``--init`` file carried."""
     return {**(metadata or {}), "selected_on": list(SELECTED_ON)}
+
+
+def with_couplings(metadata, refine):
+    """``metadata`` with ``pipeline``, what the denoiser learned from, unless it says already
+    (``minretarget.pipeline.couplings``): ``training.train``'s denoiser learns SKR's readings,
+    refined if the weights have a refiner, after ``Smoothing()`` (``smoothed_skeletons``)."""
+    if "pipeline" in metadata:
+        return metadata
+    return {**metadata, "pipeline": {"denoiser_input": {
+        "smoothing": Smoothing()._asdict(), "refine": refine, "fit_source": False}}}
 
 
 def _array(tensor):
@@ -108,7 +119,8 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
                                                                    _dense(denoise.head))
     rest_pose = (RestPoseWeights(_array(smrm.rest_directions)) if smrm.config.rest_pose
                  else None)
-    weights = Weights(config, skr_weights, smrm_weights, skin_weights, with_selection(metadata),
+    metadata = with_couplings(with_selection(metadata), refine is not None)
+    weights = Weights(config, skr_weights, smrm_weights, skin_weights, metadata,
                       refine_weights, denoise_weights, rest_pose)
     # Round-trip through the loader's checks so a wrong export fails here, not at load.
     return weights_from_arrays(flatten_weights(weights), source="exported weights")

@@ -30,6 +30,7 @@ from minretarget.retargeter import Retargeter
 from minretarget.smoothing import Smoothing
 from minretarget.smrm import initial_state
 from minretarget.weights import flatten_weights, load_weights
+from minretarget.pipeline import PipelineConfig
 from training.data.datasets import validation_sequences
 
 TRIALS, MAX_FRAMES, CONTACT_HEIGHT = 12, 240, 0.03
@@ -49,7 +50,8 @@ def validation_streams(weights, cmu_dir, cache_dir):
         path = cache_dir / f"{trial.name}.npz"
         if not path.is_file():
             sequence = build()
-            retargeter = Retargeter(weights, warn=False, smoothing=Smoothing(), foot_lock=None)
+            retargeter = Retargeter(weights, PipelineConfig(smoothing=Smoothing(), foot_lock=None),
+                warn=False)
             retargeter.set_target(sequence["target_tpose_points"])
             frames = retargeter.retarget_sequence(sequence["source_points"])
             np.savez(path, rotations=frames.rotations, root=frames.root,
