@@ -1,0 +1,89 @@
+"""The declared pipeline (minretarget.pipeline): configs, presets, and the weights' couplings."""
+import json
+
+import pytest
+
+from minretarget import FitSettings, FootLock, PipelineConfig, Retargeter, Smoothing
+from minretarget.pipeline import (DEFAULT_PRESET, LEGACY_COUPLINGS, PRESETS, UNCOUPLED,
+                                  as_config, check_pipeline, preset)
+
+
+def test_every_preset_survives_json_and_is_known_by_name():
+    for name, config in PRESETS.items():
+        again = PipelineConfig.from_json(config.to_json())
+        assert again == config and again.preset_name() == name
+        assert json.loads(config.to_json()) == config.to_dict()
+    assert preset("default") == PRESETS[DEFAULT_PRESET] == as_config(None)
+    assert PipelineConfig() == PRESETS["regressed"]
+    assert PipelineConfig(foot_lock=None).preset_name() is None
+
+
+def test_presets_are_the_stages_they_name():
+    paper, fitted = PRESETS["paper"], PRESETS["fitted"]
+    assert not any((paper.mirror_target, paper.refine, paper.facing_check, paper.denoise,
+                    paper.rest_pose)) and paper.smoothing is paper.foot_lock is None
+    assert paper.fit_source is None
+    assert fitted.fit_source == FitSettings() and fitted.smoothing is None
+    assert not fitted.denoise and fitted.refine and fitted.foot_lock == FootLock()
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(TypeError, match="refine must be True or False"):
+        PipelineConfig(refine="no")
+    with pytest.raises(ValueError, match="smoothing must be"):
+        PipelineConfig(smoothing=(0.5,))
+    with pytest.raises(TypeError, match="fit_source must be"):
+        PipelineConfig(fit_source={"iterations": 3})
+    with pytest.raises(TypeError, match="has no setting smoothin"):
+        PipelineConfig().replace(smoothin=None)
+    with pytest.raises(ValueError, match="unknown pipeline settings"):
+        PipelineConfig.from_dict({"denoiser": True})
+    with pytest.raises(ValueError, match="must be null or an object of"):
+        PipelineConfig.from_dict({"foot_lock": {"plant": 1.0}})
+    with pytest.raises(ValueError, match="no pipeline preset 'fast'"):
+        preset("fast")
+    with pytest.raises(TypeError, match="config must be a PipelineConfig"):
+        as_config({"refine": True})
+
+
+def test_json_values_become_the_settings_types():
+    config = PipelineConfig.from_dict({"smoothing": {"position_gain": 0.5, "velocity_gain": 0.2},
+                                       "fit_source": {"iterations": 3}, "foot_lock": None})
+    assert config.smoothing == Smoothing(0.5, 0.2) and config.fit_source.iterations == 3
+    assert config.foot_lock is None and config.refine
+
+
+def test_a_denoiser_refuses_skeletons_unlike_those_it_learned(tiny_weights):
+    coupled = tiny_weights._replace(metadata={**tiny_weights.metadata,
+                                              "pipeline": LEGACY_COUPLINGS})
+    assert check_pipeline(coupled, PRESETS["regressed"]) is PRESETS["regressed"]
+    for changes, named in (({"smoothing": None}, "smoothing"), ({"refine": False}, "refine"),
+                           ({"fit_source": FitSettings()}, "fit_source"),
+                           ({"smoothing": Smoothing(0.5, 0.2)}, "smoothing")):
+        with pytest.raises(ValueError, match=f"trained on skeletons with {named}="):
+            Retargeter(coupled, PipelineConfig(**changes))
+        Retargeter(coupled, PipelineConfig(allow_untrained=True, **changes))  # on request
+        Retargeter(coupled, PipelineConfig(denoise=False, **changes))         # no denoiser
+    for name in PRESETS:                                     # every preset is trained for
+        Retargeter(coupled, name)
+    assert tiny_weights.metadata["pipeline"] == UNCOUPLED   # random weights: anything goes
+    Retargeter(tiny_weights, PipelineConfig(smoothing=None))
+    # weights without a denoiser have nothing to refuse
+    Retargeter(coupled._replace(denoise=None, config=coupled.config.without_denoiser()),
+               PipelineConfig(smoothing=None))
+
+
+def test_the_config_changes_between_streams_not_across_a_denoiser(tiny_weights, tiny_stream):
+    target, sources, _ = tiny_stream
+    retargeter = Retargeter(tiny_weights, warn=False)
+    retargeter.set_target(target)
+    retargeter.config = "paper"
+    assert retargeter.config == PRESETS["paper"]
+    retargeter.config = "regressed"
+    retargeter.step(sources[0])
+    retargeter.config = retargeter.config.replace(foot_lock=None)      # same denoiser: fine
+    with pytest.raises(ValueError, match="keeps the denoiser it began with"):
+        retargeter.config = retargeter.config.replace(denoise=False)
+    retargeter.reset()
+    retargeter.config = retargeter.config.replace(denoise=False)
+    retargeter.step(sources[0])
