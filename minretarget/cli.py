@@ -59,10 +59,9 @@ from .fit import FitSettings, body_model
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
                       previous_outputs)
 from .render import render
-from .pipeline import PipelineConfig
+from .pipeline import DEFAULT_PRESET, PRESETS, preset
 from .retargeter import Retargeter
 from .skeletons import canonical_world, mapping_lines, skeleton_of
-from .smoothing import Smoothing
 from .sources import MESH_POINTS, load_sample, open_source, read_skeleton_map, read_target
 from .units import CANONICAL, UNITS, UP_AXES, make_space, to_canonical
 from .validation import (UNIT_NAMES, InputWarning, TPoseWarning, body_problems, check_body,
@@ -267,16 +266,20 @@ def file_space(points, name, role, units=None, up_axis=None, force=False, min_po
 
 def pipeline_config(args):
     """The pipeline (``pipeline.PipelineConfig``) that ``retarget``'s parsed options ``args``
-    ask for."""
-    foot_lock = None if args.no_foot_lock else FootLock()
+    ask for: the preset, changed by the options."""
+    config = preset(args.preset)
+    foot_lock = None if args.no_foot_lock else config.foot_lock
     if args.foot_leash is not None:                   # never with --no-foot-lock (argparse)
-        foot_lock = foot_lock._replace(max_offset=args.foot_leash)
+        foot_lock = (foot_lock or FootLock())._replace(max_offset=args.foot_leash)
     fitted = args.source_fit      # the fit's skeleton is neither smoothed nor denoised
-    return PipelineConfig(
-        smoothing=None if args.no_smoothing or fitted else Smoothing(), foot_lock=foot_lock,
-        mirror_source=args.mirror_source, refine=not args.no_refine,
-        denoise=not (args.no_denoise or fitted), rest_pose=not args.no_rest_pose,
-        facing_check=not args.no_facing_check, fit_source=FitSettings() if fitted else None)
+    return config.replace(
+        smoothing=None if args.no_smoothing or fitted else config.smoothing,
+        foot_lock=foot_lock, mirror_source=args.mirror_source or config.mirror_source,
+        refine=config.refine and not args.no_refine,
+        denoise=config.denoise and not (args.no_denoise or fitted),
+        rest_pose=config.rest_pose and not args.no_rest_pose,
+        facing_check=config.facing_check and not args.no_facing_check,
+        fit_source=FitSettings() if fitted and config.fit_source is None else config.fit_source)
 
 
 def target_of(args):
@@ -384,8 +387,10 @@ def _warmup(args):
     retargeter = load_retargeter(args.weights)
     _, target_points, target_faces, _ = load_sample()
     retargeter.set_target(target_points, target_faces)
-    for mirror_source, skeleton in ((False, False), (True, False), (False, True)):
-        retargeter.config = retargeter.config.replace(mirror_source=mirror_source)
+    for name, mirror_source, skeleton in (("regressed", False, False),
+                                          ("regressed", True, False),
+                                          ("regressed", False, True), ("fitted", False, False)):
+        retargeter.config = preset(name).replace(mirror_source=mirror_source)
         retargeter.warm_up(skeleton)
     print(f"kernels ready in {time.perf_counter() - start:.1f} s; later runs load them from "
           "numba's cache")
@@ -468,6 +473,11 @@ def add_retarget_arguments(retarget):
                           "depends only on it and the frame's index")
     retarget.add_argument("--weights", default=None, help=WEIGHTS_HELP)
     retarget.add_argument("--threads", type=int_at_least(1), default=1, help=THREADS_HELP)
+    retarget.add_argument("--preset", choices=["default", *PRESETS], default="default",
+                          help="the pipeline to start from (docs/python_api.md): paper (SKR, "
+                               "SMRM, FK, LBS only), regressed (SKR's reading smoothed and "
+                               f"denoised), fitted (a body model tracked in each cloud); "
+                               f"default: {DEFAULT_PRESET}. The options below change it")
     retarget.add_argument("--no-smoothing", action="store_true",
                           help="do not smooth the source skeleton of each point cloud over "
                                "time (default: smoothed against jitter; the denoiser still "
@@ -503,9 +513,8 @@ def add_retarget_arguments(retarget):
                                "turned half round, and the reading facing nearer kept)")
     retarget.add_argument("--source-fit", action="store_true",
                           help="track a calibrated body model in every source cloud after SKR "
-                               "and hand its joints on, neither smoothed nor denoised "
-                               "(docs/source_fit.md: a truer skeleton, about 11 ms more a "
-                               "frame and 4 s of calibration at the start)")
+                               "and hand its joints on, neither smoothed nor denoised (the "
+                               "fitted preset's stage, on any preset; docs/source_fit.md)")
     again = retarget.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue an interrupted run in --out from its last checkpoint "

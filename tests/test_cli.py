@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import CMU_DIR, GOLDEN, needs_cmu, with_rest_pose
-from minretarget import PipelineConfig, Retargeter
+from minretarget import PRESETS, Retargeter
 from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
 from minretarget.contacts import FootLock
@@ -146,6 +146,13 @@ def test_no_rest_pose_matches_the_python_api(inputs, monkeypatch, tmp_path):
                            str(tmp_path / "rest.npz"))
 
 
+@pytest.mark.parametrize("base", ["paper", "fitted"])
+def test_presets_match_the_python_api(inputs, monkeypatch, base):
+    """--preset NAME is the API's preset; an option changes it as the API's setting does."""
+    option_matches_the_api(inputs, monkeypatch, ("--mirror-source",), {"mirror_source": True},
+                           WEIGHTS, base)
+
+
 def test_no_facing_check_matches_the_python_api(inputs, monkeypatch):
     """--no-facing-check. The tiny model's skeletons of the test frames never face away from
     each other, so a stand-in check that moves every skeleton shows whether the check ran."""
@@ -156,16 +163,17 @@ def test_no_facing_check_matches_the_python_api(inputs, monkeypatch):
                            {"facing_check": False}, WEIGHTS)
 
 
-def option_matches_the_api(inputs, monkeypatch, option, setting, weights):
-    monkeypatch.setattr(cli, "FootLock", lambda: EAGER)
+def option_matches_the_api(inputs, monkeypatch, option, setting, weights,
+                           base="regressed"):
+    monkeypatch.setitem(PRESETS, base, PRESETS[base].replace(foot_lock=EAGER))
     results = {}
     for options in ((), option):
         out = inputs["dir"] / f"out{''.join(options)}"
         assert run("retarget", inputs["dir"] / "frames.npy", inputs["dir"] / "target.ply",
                    "--out", out, "--format", "npz", "--weights", weights, "--overwrite",
-                   *options) == 0
+                   "--preset", base, *options) == 0
         results[options] = load(out / "result.npz")
-    retargeter = Retargeter.from_weights(weights, PipelineConfig(foot_lock=EAGER).replace(**setting))
+    retargeter = Retargeter.from_weights(weights, PRESETS[base].replace(**setting))
     retargeter.set_target(inputs["target"], inputs["faces"])
     expected = list(retargeter.run(inputs["frames"]))
     for field in ("rotations", "vertices"):
