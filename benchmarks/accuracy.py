@@ -52,9 +52,11 @@ Only when named in --rows:
                          refiner and the facing check), no smoothing and no denoiser (both
                          learned or tuned on SKR's errors, not the fit's)
     analytic, source fit  ``analytic`` on that row's source skeletons
-    model, source fit, no X  ``model, source fit`` with one stage off (``FIT_ABLATIONS``): the
+    model, source fit, no X  ``model, source fit`` with one stage off (``FIT_VARIANTS``): the
                          refiner on the source readings, the facing check, the rest-pose
                          model, the foot lock
+    model, source fit, thinned to 1024  ``model, source fit`` with every cloud thinned to
+                         1,024 points (seeded by the frame's index) before SKR
     model, foot leash X m  the model with the foot lock's leash (``FootLock.max_offset``, the
                          command line's --foot-leash) X instead of 1 cm: planted toes held
                          firmer, for X in ``FOOT_LEASHES``
@@ -151,12 +153,14 @@ ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
 LEASH_ROWS = tuple(f"model, foot leash {leash:g} m" for leash in FOOT_LEASHES)
 # The fitted preset with one stage off each (docs/source_fit.md, "Which stages the fit makes
-# redundant"); "no refiner": the source readings only, the target's skeleton keeps it.
-FIT_ABLATIONS = {"model, source fit, no refiner": {"refine": False},
-                 "model, source fit, no facing check": {"facing_check": False},
-                 "model, source fit, no rest pose": {"rest_pose": False},
-                 "model, source fit, no foot lock": {"foot_lock": None}}
-FIT_ROWS = ("model, source fit", "analytic, source fit", *FIT_ABLATIONS)
+# redundant"; "no refiner": the source readings only, the target's skeleton keeps it), or
+# every cloud thinned to the fit's 1,024 points before SKR ("Speed").
+FIT_VARIANTS = {"model, source fit, no refiner": {"refine": False},
+                "model, source fit, no facing check": {"facing_check": False},
+                "model, source fit, no rest pose": {"rest_pose": False},
+                "model, source fit, no foot lock": {"foot_lock": None},
+                "model, source fit, thinned to 1024": {"cloud_points": 1024}}
+FIT_ROWS = ("model, source fit", "analytic, source fit", *FIT_VARIANTS)
 CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as touching
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
@@ -164,7 +168,7 @@ BOOTSTRAP_SAMPLES = 10_000
 PAIRS = (("model", "analytic"), ("model", "analytic, plain"),
          ("model, mirrored source", "analytic, mirrored source"),
          ("model, source fit", "analytic, source fit"), ("model, source fit", "model"),
-         *((row, "model, source fit") for row in FIT_ABLATIONS))
+         *((row, "model, source fit") for row in FIT_VARIANTS))
 
 
 def command_line(main):
@@ -330,8 +334,8 @@ def run_sequence(weights, sequence, wanted=ROWS):
     mirrored = Retargeter(weights, PipelineConfig(mirror_source=True))
     fitted = (Retargeter(weights, "fitted")
               if set(FIT_ROWS) & set(wanted) else None)
-    fit_ablations = {row: Retargeter(weights, PRESETS["fitted"].replace(**changes))
-                     for row, changes in FIT_ABLATIONS.items() if row in wanted}
+    fit_variants = {row: Retargeter(weights, PRESETS["fitted"].replace(**changes))
+                     for row, changes in FIT_VARIANTS.items() if row in wanted}
     oracle_rig = Retargeter(weights)
     oracle_rig_raw = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
     leashed = {row: Retargeter(weights, PipelineConfig(foot_lock=FootLock(max_offset=leash)))
@@ -339,7 +343,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
                                  (no_facing_check, rig), (raw, rig), (mirrored, rig),
                                  *(((fitted, rig),) if fitted else ()),
-                                 *((retargeter, rig) for retargeter in fit_ablations.values()),
+                                 *((retargeter, rig) for retargeter in fit_variants.values()),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
@@ -364,10 +368,11 @@ def run_sequence(weights, sequence, wanted=ROWS):
                                              for joints, cloud in zip(raw_joints, clouds)])
 
     @functools.cache
-    def ablated_frames(row):
-        """A fitted-preset row with a stage off, on the readings its settings make."""
-        retargeter = fit_ablations[row]
-        readings = raw_joints if retargeter.config.refine else skr_alone()
+    def variant_frames(row):
+        """A fitted-preset variant's row, on the readings its settings make."""
+        retargeter = fit_variants[row]
+        readings = (retargeter.skeleton(clouds) if retargeter.config.cloud_points
+                    else raw_joints if retargeter.config.refine else skr_alone())
         return [retargeter.step_skeleton(joints, cloud) for joints, cloud in zip(readings,
                                                                                 clouds)]
     # The source skeleton SMRM saw, for the rows that keep it.
@@ -376,7 +381,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "model, mirrored source": mirrored_frames,
             "analytic, mirrored source": mirrored_frames,
             "model, source fit": fitted_frames, "analytic, source fit": fitted_frames,
-            **{row: functools.partial(ablated_frames, row) for row in fit_ablations}}
+            **{row: functools.partial(variant_frames, row) for row in fit_variants}}
     make = {"model": lambda: model,
             "model, no refiner": lambda: stream(unrefined, skr_alone(), clouds),
             "model, no denoiser": lambda: stream(no_denoiser, raw_joints, clouds),
@@ -391,8 +396,8 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "analytic, mirrored source": lambda: analytic(mirrored_frames(), mirrored),
             "model, source fit": lambda: stacked(fitted_frames()),
             "analytic, source fit": lambda: analytic(fitted_frames(), fitted),
-            **{row: functools.partial(lambda row: stacked(ablated_frames(row)), row)
-               for row in fit_ablations},
+            **{row: functools.partial(lambda row: stacked(variant_frames(row)), row)
+               for row in fit_variants},
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
             "oracle target": lambda: stream(oracle_rig, raw_joints, clouds),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),

@@ -39,6 +39,7 @@ from .conventions import NUM_JOINTS, PARENTS
 from .nearest import _build_grid_kernel, _nearest_kernel, build_grid, nearest
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
                          quaternion_to_matrix)
+from .sampling import seeded_subset
 from .validation import as_float32_array
 
 BODY_MODEL = Path(__file__).with_name("data") / "body_model.npz"
@@ -599,11 +600,9 @@ def local_from_joints(joints, tpose_joints):
 
 
 def subsample(cloud, count, frame):
-    """``count`` points of a cloud (P, 3), drawn with the frame's index as seed -> float64."""
-    cloud = np.asarray(cloud, np.float64)
-    if len(cloud) <= count:
-        return cloud
-    return cloud[np.random.default_rng(frame).choice(len(cloud), count, replace=False)]
+    """``count`` points of a cloud (P, 3), drawn with the frame's index as seed -> float64
+    (``sampling.seeded_subset``: the points a pipeline thinned to ``count`` read too)."""
+    return np.asarray(seeded_subset(cloud, count, frame), np.float64)
 
 
 def start_fit(model, settings, cloud, reading):

@@ -3,6 +3,7 @@
 A source frame goes down these stages, in this order (``Retargeter._retarget_step``):
 
     stage            module              setting            what it does
+    0  thinning      sampling            cloud_points       a seeded subset of each cloud
     1  SKR           skr                 (always)           the cloud's skeleton, regressed
     1b mirror        skr                 mirror_source      ... averaged with its mirror image's
     1c refiner       refine              refine             each joint moved by the points near it
@@ -34,6 +35,7 @@ import json
 import numpy as np
 
 from .contacts import FootLock, check_foot_lock
+from .conventions import MIN_POINTS
 from .fit import FitSettings, check_fit_settings
 from .smoothing import Smoothing, check_smoothing
 
@@ -49,6 +51,9 @@ _FLAGS = ("mirror_target", "mirror_source", "refine", "facing_check", "denoise",
 class PipelineConfig:
     """Every stage's setting (the module's table); frozen: ``replace`` makes a changed copy.
     The defaults are the ``regressed`` preset's."""
+    # Each source cloud thinned to this many points (a subset seeded by the frame's index in the
+    # stream) before every stage, or None for all its points.
+    cloud_points: int | None = None
     mirror_target: bool = True
     mirror_source: bool = False
     refine: bool = True
@@ -70,6 +75,13 @@ class PipelineConfig:
             object.__setattr__(self, name, bool(value))
         for name, (_, check) in _TUPLE_SETTINGS.items():
             object.__setattr__(self, name, check(getattr(self, name)))
+        points = self.cloud_points
+        if points is not None and (not isinstance(points, (int, np.integer))
+                                   or isinstance(points, bool) or points < MIN_POINTS):
+            raise ValueError(f"PipelineConfig.cloud_points must be None or an integer >= "
+                             f"{MIN_POINTS}, got {points!r}")
+        if points is not None:
+            object.__setattr__(self, "cloud_points", int(points))
 
     def replace(self, **changes):
         """This config with ``changes`` (stage settings by name)."""

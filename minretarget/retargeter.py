@@ -19,6 +19,7 @@ from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
 from .pipeline import as_config, check_pipeline
 from .refine import refine_joints
+from .sampling import seeded_subset
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import mirror_averaged, regress_joints
 from .smrm import check_state, retarget_step
@@ -188,6 +189,7 @@ class Retargeter:
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
+        points = self._thinned(points, self._frame())
         return self._step_joints(self._skr(points, self.config.mirror_source), points)
 
     def step_skeleton(self, source_joints, points=None):
@@ -200,10 +202,20 @@ class Retargeter:
             raise RuntimeError("call set_target before step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
         if points is not None:
-            points = as_point_cloud(points, "source points", MIN_POINTS)
+            points = self._thinned(as_point_cloud(points, "source points", MIN_POINTS),
+                                   self._frame())
         if self.warn and self._state is None:
             check_body(source_joints, "source joints, frame 0")
         return self._step_joints(source_joints, points)
+
+    def _frame(self):
+        """The index in the stream of the frame about to be retargeted."""
+        return 0 if self._state is None else self._state.frames_seen
+
+    def _thinned(self, points, frame):
+        """(P, 3) points thinned to the config's ``cloud_points`` (seeded by ``frame``)."""
+        count = self.config.cloud_points
+        return points if count is None else seeded_subset(points, count, frame)
 
     def _step_joints(self, source_joints, points=None):
         rotations, root = self._retarget_step(source_joints, points)
@@ -218,16 +230,20 @@ class Retargeter:
         smoothing and denoising.
 
         Args:
-            points: (P, 3) or (T, P, 3) float32 source clouds, metres.
+            points: (P, 3) or (T, P, 3) float32 source clouds, metres; with the config's
+                ``cloud_points``, thinned as a stream's frames 0, 1, ... (one cloud: 0).
         Returns:
             (J, 3) or (T, J, 3) float32 joints, metres; ``step_skeleton`` takes them (with
-            their clouds, for the facing check).
+            their clouds, for the facing check and the source fit).
         """
         points = as_float32_array(points, "source points", (..., None, 3))
         if points.ndim not in (2, 3) or points.shape[-2] < MIN_POINTS or not len(points):
             raise ValueError(f"source points must have shape (P, 3) or (T, P, 3) with T >= 1 "
                              f"and P >= {MIN_POINTS}, got {points.shape}")
-        return self._skr(points, self.config.mirror_source)
+        if points.ndim == 3:
+            points = np.stack([self._thinned(cloud, t) for t, cloud in enumerate(points)])
+        return self._skr(self._thinned(points, 0) if points.ndim == 2 else points,
+                         self.config.mirror_source)
 
     def _skr(self, points, mirrored):
         """The skeletons of (P, 3) or (B, P, 3) clouds: SKR, then the refiner (if the weights
@@ -317,6 +333,7 @@ class Retargeter:
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
+        frames = np.stack([self._thinned(cloud, t) for t, cloud in enumerate(frames)])
         source_joints = self._skr(frames, self.config.mirror_source)
         rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
         root = np.empty((len(frames), 3), dtype=np.float32)

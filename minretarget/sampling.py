@@ -108,3 +108,12 @@ def sample_point_clouds(vertices, faces, count, rng):
     corners = frames[np.arange(len(frames))[:, None, None], faces[face_index]]    # (T, P, 3, 3)
     points = np.einsum("tpca,tpc->tpa", corners, barycentric).astype(np.float32)
     return points[0] if single else points.reshape(vertices.shape[:-2] + (count, 3))
+
+
+def seeded_subset(points, count, seed):
+    """``count`` of the (P, 3) ``points`` (all of them if P <= count), drawn without
+    replacement by a generator seeded with ``seed`` (a stream's frame index): the same points
+    of the same cloud whoever asks."""
+    if len(points) <= count:
+        return points
+    return points[np.random.default_rng(seed).choice(len(points), count, replace=False)]

@@ -1,6 +1,8 @@
 """The declared pipeline (minretarget.pipeline): configs, presets, and the weights' couplings."""
 import json
 
+import numpy as np
+
 import pytest
 
 from minretarget import FitSettings, FootLock, PipelineConfig, Retargeter, Smoothing
@@ -87,3 +89,29 @@ def test_the_config_changes_between_streams_not_across_a_denoiser(tiny_weights, 
     retargeter.reset()
     retargeter.config = retargeter.config.replace(denoise=False)
     retargeter.step(sources[0])
+
+
+def test_thinned_clouds_are_the_same_points_whichever_call_reads_them(tiny_weights, tiny_stream):
+    """cloud_points: ``step``, ``skeleton`` + ``step_skeleton`` and ``retarget_sequence`` read
+    the same seeded subset of each frame (seed: its index in the stream), as the fit does."""
+    from minretarget.sampling import seeded_subset
+    target, sources, _ = tiny_stream
+    clouds = np.stack([cloud[:200] for cloud in sources[:5]])
+    config = PipelineConfig(cloud_points=80, smoothing=None, foot_lock=None)
+    streamed, by_parts, offline = (Retargeter(tiny_weights, config, warn=False)
+                                   for _ in range(3))
+    plain = Retargeter(tiny_weights, config.replace(cloud_points=None), warn=False)
+    for retargeter in (streamed, by_parts, offline, plain):
+        retargeter.set_target(target)
+    readings = by_parts.skeleton(clouds)
+    sequence = offline.retarget_sequence(clouds)
+    for t, cloud in enumerate(clouds):
+        subset = seeded_subset(cloud, 80, t)
+        assert len(subset) == 80 and len(np.unique(subset, axis=0)) == 80
+        want = plain.step(subset)
+        np.testing.assert_allclose(streamed.step(cloud).vertices, want.vertices, atol=1e-6)
+        np.testing.assert_allclose(by_parts.step_skeleton(readings[t], cloud).vertices,
+                                   want.vertices, atol=1e-6)
+        np.testing.assert_allclose(sequence.vertices[t], want.vertices, atol=1e-5)
+    with pytest.raises(ValueError, match="cloud_points must be None or an integer >= 64"):
+        PipelineConfig(cloud_points=10)
