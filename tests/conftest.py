@@ -11,6 +11,9 @@ from minretarget.rest_pose import NUM_BONES, NUM_FEATURES, RestPoseWeights
 from minretarget.weights import load_weights
 
 GOLDEN = Path(__file__).parent / "golden"
+# tests/golden/shipped_presets.npz (tests/make_golden.py --shipped): frames streamed, past the
+# source fit's calibration (15), and the stride of the target vertices kept.
+SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE = 24, 97
 # The CMU motion capture (README, Data): MINRETARGET_CMU_DIR, else beside the repository.
 CMU_DIR = Path(os.environ.get("MINRETARGET_CMU_DIR")
                or Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu")

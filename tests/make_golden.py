@@ -1,8 +1,11 @@
-"""Regenerate tests/golden/: a tiny random model's weights, inputs and torch outputs.
+"""Regenerate tests/golden/: a tiny random model's weights, inputs and torch outputs; or
+(--shipped) every pipeline preset's output on the shipped weights and sample.
 
-    python tests/make_golden.py
+    python tests/make_golden.py [--shipped]
 The runtime's tests compare against these files, so they run where torch is not installed;
-test_parity.py checks that the files still match the current torch reference.
+test_parity.py checks that the tiny model's still match the current torch reference. The
+shipped outputs change only when a release changes the pipeline on purpose: regenerate them
+then, and say so in the commit.
 """
 import sys
 from pathlib import Path
@@ -14,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from reference_models import random_reference, random_stream  # noqa: E402
 
+from conftest import SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE  # noqa: E402
 from minretarget.pipeline import UNCOUPLED  # noqa: E402
 from training.export import export_weights  # noqa: E402
 
@@ -45,5 +49,31 @@ def main():
                         **{f"torch_{key}": value for key, value in outputs.items()})
 
 
+def shipped_outputs():
+    """Each preset of minretarget.pipeline streamed over the shipped sample's first
+    SHIPPED_FRAMES clouds with the shipped weights (one BLAS thread): {f"{preset}_{field}"}."""
+    from threadpoolctl import threadpool_limits
+
+    from minretarget.pipeline import PRESETS
+    from minretarget.retargeter import Retargeter
+    from minretarget.sources import load_sample
+    source, target_points, faces, _ = load_sample()
+    clouds = [cloud for cloud, _ in zip(source.frames, range(SHIPPED_FRAMES))]
+    outputs = {}
+    with threadpool_limits(1):
+        for name in PRESETS:
+            retargeter = Retargeter.from_weights(None, name, warn=False)
+            retargeter.set_target(target_points, faces)
+            frames = list(retargeter.run(clouds))
+            for field in ("joints", "rotations", "root", "source_joints"):
+                outputs[f"{name}_{field}"] = np.stack([getattr(f, field) for f in frames])
+            outputs[f"{name}_vertices"] = np.stack(
+                [f.vertices[::SHIPPED_VERTEX_STRIDE] for f in frames])
+    return outputs
+
+
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:] == ["--shipped"]:
+        np.savez_compressed(GOLDEN / "shipped_presets.npz", **shipped_outputs())
+    else:
+        main()

@@ -1,8 +1,13 @@
-"""The runtime against torch outputs stored in tests/golden: runs without torch installed."""
+"""The runtime against outputs stored in tests/golden: the tiny model's torch outputs, and every
+preset's on the shipped weights and sample. Runs without torch installed."""
 import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
 
+from conftest import GOLDEN, SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE
+from minretarget.pipeline import DEFAULT_PRESET, PRESETS, PipelineConfig
 from minretarget.retargeter import Retargeter
-from minretarget.pipeline import PipelineConfig
+from minretarget.sources import load_sample
 
 TOLERANCE = 1e-4   # metres
 
@@ -24,3 +29,39 @@ def test_runtime_reproduces_the_golden_torch_stream(tiny_weights, tiny_stream):
             np.testing.assert_allclose(getattr(frame, key), want[f"torch_{key}"][t],
                                        atol=TOLERANCE, err_msg=f"frame {t} {key}")
         np.testing.assert_allclose(frame.rotations, want["torch_rotations"][t], atol=1e-5)
+
+
+SHIPPED = GOLDEN / "shipped_presets.npz"
+SHIPPED_TOLERANCE = 1e-3   # metres: other CPUs round the fit's float64 solves differently
+
+
+@pytest.fixture(scope="module")
+def shipped_stream():
+    source, target_points, faces, _ = load_sample()
+    clouds = [cloud for cloud, _ in zip(source.frames, range(SHIPPED_FRAMES))]
+    with np.load(SHIPPED) as data:
+        return target_points, faces, clouds, dict(data)
+
+
+@pytest.mark.parametrize("preset", ["default", *PRESETS])
+def test_every_preset_on_the_shipped_weights_and_sample_gives_its_golden_output(shipped_stream,
+                                                                               preset):
+    """The whole pipeline, as shipped (tests/make_golden.py --shipped wrote the outputs; a
+    change of any stage, setting or weight shows here)."""
+    target_points, faces, clouds, want = shipped_stream
+    name = DEFAULT_PRESET if preset == "default" else preset
+    retargeter = (Retargeter.from_weights(warn=False) if preset == "default"
+                  else Retargeter.from_weights(None, preset, warn=False))
+    retargeter.set_target(target_points, faces)
+    with threadpool_limits(1):
+        frames = list(retargeter.run(clouds))
+    for field in ("joints", "root", "source_joints", "vertices"):
+        got = np.stack([getattr(f, field) for f in frames])
+        if field == "vertices":
+            got = got[:, ::SHIPPED_VERTEX_STRIDE]
+        np.testing.assert_allclose(got, want[f"{name}_{field}"], atol=SHIPPED_TOLERANCE,
+                                   err_msg=f"{preset}: {field}")
+    # rotations: the same turn up to the quaternion's sign
+    rotations = np.stack([f.rotations for f in frames])
+    agreement = np.abs(np.sum(rotations * want[f"{name}_rotations"], axis=-1))
+    assert agreement.min() > 1 - 1e-5, preset

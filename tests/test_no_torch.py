@@ -23,8 +23,9 @@ with np.load(GOLDEN / "tiny_stream.npz") as data:
     target, counts = data["target"], data["source_counts"][:{frames}]
     points, want = data["source_points"][:counts.sum()], data["torch_vertices"]
 retargeter = minretarget.Retargeter(load_weights(GOLDEN / "tiny_weights.npz"),
-                                    smoothing=None, foot_lock=None, mirror_target=False,
-                                    facing_check=False)
+                                    minretarget.PipelineConfig(
+                                        smoothing=None, foot_lock=None, mirror_target=False,
+                                        facing_check=False))
 retargeter.set_target(target)
 frames = np.split(points, np.cumsum(counts)[:-1])
 error = max(np.abs(f.vertices - want[t]).max() for t, f in enumerate(retargeter.run(frames)))

@@ -1,8 +1,8 @@
 """The whole retargeting pipeline in torch: the reference the runtime's Retargeter must match.
 
 Mirrors minretarget.Retargeter step for step (inference only, eval mode, no gradients), as
-``Retargeter(smoothing=None, foot_lock=None, mirror_target=False, facing_check=False)`` runs
-it: SKR (and the
+``Retargeter(weights, PipelineConfig(smoothing=None, foot_lock=None, mirror_target=False,
+facing_check=False))`` runs it: SKR (and the
 refiner), the denoiser (if the config has them), SMRM, FK, LBS.
 """
 import torch
