@@ -75,5 +75,7 @@ def shipped_outputs():
 if __name__ == "__main__":
     if sys.argv[1:] == ["--shipped"]:
         np.savez_compressed(GOLDEN / "shipped_presets.npz", **shipped_outputs())
-    else:
+    elif not sys.argv[1:]:
         main()
+    else:
+        sys.exit(__doc__)
