@@ -8,22 +8,22 @@
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
 retargeted online, frame by frame, by minretarget (not torch). Rows, in one run:
     model                the weights given (default: the shipped weights), as ``Retargeter``
-                         runs them by default: SKR's joints moved by the joint refiner
-                         (minretarget.refine), smoothed over time (minretarget.smoothing)
-                         and denoised (minretarget.denoise) before SMRM, whose analytic
-                         prior allows for the two bodies' rest poses (minretarget.rest_pose),
-                         feet held on their contacts after it (minretarget.contacts); a
-                         skeleton facing far from the heading kept so far is read again
-                         from the cloud half turned (minretarget.facing)
-    model, no refiner    the same without the joint refiner (source and target skeletons)
-    model, no denoiser   the same as the model without the skeleton denoiser
-    model, no foot lock  the same as the model without the foot contacts
-    model, no rest pose  the same as the model with SMRM's plain analytic prior (target bones
-                         turned onto the source bones, no rest-pose model)
-    model, no facing check  the same as the model with every SKR reading as it comes
-    model, mirrored source  the model with ``mirror_source=True``: SKR's source joints
+                         runs them by default (``pipeline.DEFAULT_PRESET``)
+The ``model, no X`` and ``model, mirrored source`` rows are the ``regressed`` preset (SKR's
+joints moved by the joint refiner, smoothed over time and denoised before SMRM, whose analytic
+prior allows for the two bodies' rest poses, feet held on their contacts after it, a skeleton
+facing far from the heading kept so far read again half turned) with one thing changed:
+    model, no refiner    without the joint refiner (source and target skeletons)
+    model, no denoiser   without the skeleton denoiser
+    model, no foot lock  without the foot contacts
+    model, no rest pose  with SMRM's plain analytic prior (target bones turned onto the source
+                         bones, no rest-pose model)
+    model, no facing check  with every SKR reading as it comes
+    model, mirrored source  with ``mirror_source=True``: SKR's source joints
                          averaged with those of each cloud's mirror image
-    model, paper pipeline  the paper's: SKR once on the target T-pose (not mirror-averaged),
+    regressed preset     the ``regressed`` preset (SKR's readings, refined, checked for facing,
+                         smoothed and denoised): the same as ``model`` while it is the default
+    paper preset         the ``paper`` preset: SKR once on the target T-pose (not mirror-averaged),
                          SKR's source joints as they come (no refiner, no facing check, no
                          smoothing, no denoiser), SMRM's plain prior, its rotations as they
                          come
@@ -147,7 +147,8 @@ PAPER = {"MPJPE": 0.178, "PA-MPJPE": 0.056, "Acc": 0.016, "PA-Acc": 0.008, "MPVD
          "PA-MPVD": 0.058, "MEDL": 0.001}
 ROWS = ("model", "model, no refiner", "model, no denoiser", "model, no foot lock",
         "model, no rest pose", "model, no facing check", "model, mirrored source",
-        "model, paper pipeline", "analytic", "analytic, plain", "analytic, mirrored source",
+        "paper preset", "regressed preset", "analytic", "analytic, plain",
+        "analytic, mirrored source",
         "oracle source",
         "oracle target", "oracle both")
 FOOT_LEASHES = (0.02, 0.05, 0.1)     # metres: the optional rows' FootLock.max_offset
@@ -165,7 +166,7 @@ CONTACT_HEIGHT = 0.03        # metres above a toe's lowest point that count as t
 QUICK_FRAMES, QUICK_PER_CATEGORY = 150, 2
 BOOTSTRAP_SAMPLES = 10_000
 # Paired comparisons, sequence by sequence, printed when a run has both rows.
-PAIRS = (("model", "analytic"), ("model", "analytic, plain"),
+PAIRS = (("model", "analytic"), ("model", "analytic, plain"), ("model", "regressed preset"),
          ("model, mirrored source", "analytic, mirrored source"),
          ("model, source fit", "analytic, source fit"), ("model, source fit", "model"),
          *((row, "model, source fit") for row in FIT_VARIANTS))
@@ -332,6 +333,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
     no_facing_check = Retargeter(weights, PipelineConfig(facing_check=False))
     raw = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
     mirrored = Retargeter(weights, PipelineConfig(mirror_source=True))
+    regressed = Retargeter(weights, "regressed")
     fitted = (Retargeter(weights, "fitted")
               if set(FIT_ROWS) & set(wanted) else None)
     fit_variants = {row: Retargeter(weights, PRESETS["fitted"].replace(**changes))
@@ -341,16 +343,32 @@ def run_sequence(weights, sequence, wanted=ROWS):
     leashed = {row: Retargeter(weights, PipelineConfig(foot_lock=FootLock(max_offset=leash)))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
+                                 (regressed, rig),
                                  (no_facing_check, rig), (raw, rig), (mirrored, rig),
                                  *(((fitted, rig),) if fitted else ()),
                                  *((retargeter, rig) for retargeter in fit_variants.values()),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
         retargeter.set_target(points, **this_rig)
-    start = time.perf_counter()
     clouds = sequence["source_points"]
-    raw_joints = learned.skeleton(clouds)                               # SKR + refiner
-    frames = [learned.step_skeleton(joints, cloud) for joints, cloud in zip(raw_joints, clouds)]
+    kinds = {}
+
+    def readings(retargeter):
+        """SKR's (and the refiner's) readings of the clouds as ``retargeter``'s config makes
+        them: computed once for each kind (thinning, refiner, mirror averaging)."""
+        config = retargeter.config
+        kind = (config.cloud_points, config.refine, config.mirror_source)
+        if kind not in kinds:
+            kinds[kind] = retargeter.skeleton(clouds)
+        return kinds[kind]
+
+    def streamed(retargeter):
+        """``retargeter`` over its own readings, with the clouds (facing check, source fit)."""
+        return [retargeter.step_skeleton(joints, cloud)
+                for joints, cloud in zip(readings(retargeter), clouds)]
+
+    start = time.perf_counter()
+    frames = streamed(learned)          # the default pipeline, SKR batched over the frames
     seconds = time.perf_counter() - start
     model = stacked(frames)
     target = learned.target
@@ -362,34 +380,27 @@ def run_sequence(weights, sequence, wanted=ROWS):
         return analytic_full(np.stack([f.source_joints for f in frames]), target,
                              retargeter.rest_pose_model, retargeter.config.foot_lock)
 
-    skr_alone = functools.cache(lambda: paper.skeleton(sequence["source_points"]))
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
-    fitted_frames = functools.cache(lambda: [fitted.step_skeleton(joints, cloud)
-                                             for joints, cloud in zip(raw_joints, clouds)])
-
-    @functools.cache
-    def variant_frames(row):
-        """A fitted-preset variant's row, on the readings its settings make."""
-        retargeter = fit_variants[row]
-        readings = (retargeter.skeleton(clouds) if retargeter.config.cloud_points
-                    else raw_joints if retargeter.config.refine else skr_alone())
-        return [retargeter.step_skeleton(joints, cloud) for joints, cloud in zip(readings,
-                                                                                clouds)]
+    fitted_frames = functools.cache(lambda: streamed(fitted))
+    regressed_frames = functools.cache(lambda: frames if regressed.config == learned.config
+                                       else streamed(regressed))
+    variant_frames = functools.cache(lambda row: streamed(fit_variants[row]))
     # The source skeleton SMRM saw, for the rows that keep it.
     seen = {"model": lambda: frames, "analytic": lambda: frames,
-            "analytic, plain": lambda: frames,
+            "analytic, plain": lambda: frames, "regressed preset": regressed_frames,
             "model, mirrored source": mirrored_frames,
             "analytic, mirrored source": mirrored_frames,
             "model, source fit": fitted_frames, "analytic, source fit": fitted_frames,
             **{row: functools.partial(variant_frames, row) for row in fit_variants}}
     make = {"model": lambda: model,
-            "model, no refiner": lambda: stream(unrefined, skr_alone(), clouds),
-            "model, no denoiser": lambda: stream(no_denoiser, raw_joints, clouds),
-            "model, no foot lock": lambda: stream(no_lock, raw_joints, clouds),
-            "model, no rest pose": lambda: stream(no_rest_pose, raw_joints, clouds),
-            "model, no facing check": lambda: stream(no_facing_check, raw_joints),
+            "regressed preset": lambda: stacked(regressed_frames()),
+            "model, no refiner": lambda: stacked(streamed(unrefined)),
+            "model, no denoiser": lambda: stacked(streamed(no_denoiser)),
+            "model, no foot lock": lambda: stacked(streamed(no_lock)),
+            "model, no rest pose": lambda: stacked(streamed(no_rest_pose)),
+            "model, no facing check": lambda: stream(no_facing_check, readings(no_facing_check)),
             "model, mirrored source": lambda: stacked(mirrored_frames()),
-            "model, paper pipeline": lambda: stream(paper, skr_alone()),
+            "paper preset": lambda: stream(paper, readings(paper)),
             "analytic": lambda: analytic(frames, learned),
             "analytic, plain": lambda: analytic_plain(
                 np.stack([f.source_joints for f in frames]), target),
@@ -399,9 +410,9 @@ def run_sequence(weights, sequence, wanted=ROWS):
             **{row: functools.partial(lambda row: stacked(variant_frames(row)), row)
                for row in fit_variants},
             "oracle source": lambda: stream(raw, sequence["source_joints"]),
-            "oracle target": lambda: stream(oracle_rig, raw_joints, clouds),
+            "oracle target": lambda: stacked(streamed(oracle_rig)),
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),
-            **{row: functools.partial(stream, retargeter, raw_joints, clouds)
+            **{row: functools.partial(lambda r: stacked(streamed(r)), retargeter)
                for row, retargeter in leashed.items()}}
     rows = {row: make[row]() for row in wanted}
     sources = {row: np.stack([f.source_joints for f in seen[row]()])
