@@ -34,7 +34,8 @@ points; SKR and SKIN find its rig, as ``accuracy.py``'s model row). Scored with
 pooled over trials weighted by frames (``accuracy.frame_weighted``); also the source skeleton's
 error (what SMRM was fed, against the true source joints, ``metrics.joint_errors``) and, where
 frames were lost, PA-MPJPE on the frames seen only. The ratio of each view's PA-MPJPE to the
-full cloud's (same preset) is the issue's goal: within 1.5x.
+full cloud's (same preset) is the issue's goal: within 1.5x. About 9 minutes on one core
+(rendering about 1 of them); figures and findings in docs/single_view.md.
 """
 import argparse
 import json
