@@ -20,9 +20,9 @@ and once per target: SKR on its T-pose (``mirror_target``: and on its mirror ima
 ``PipelineConfig`` holds every setting; ``PRESETS`` names the ones that are measured and
 supported: ``paper`` (SKR -> SMRM -> FK -> LBS, the paper's pipeline and the torch
 reference's), ``regressed`` (SKR's reading, refined, checked for facing, smoothed and
-denoised) and ``fitted`` (SKR's reading then the source fit, neither smoothed nor denoised).
-``DEFAULT_PRESET`` is the one ``Retargeter`` runs unless told otherwise; docs/source_fit.md
-and docs/results.md say how it was chosen.
+denoised) and ``fitted`` (SKR's refined reading, then the source fit, neither smoothed nor
+denoised). ``DEFAULT_PRESET`` is the one ``Retargeter`` runs unless told otherwise:
+docs/source_fit.md says how it was chosen.
 
 Some settings are coupled to how the weights were trained: the denoiser learned SKR's
 refined readings after ``Smoothing()``, so it refuses skeletons from another smoothing or
@@ -139,9 +139,11 @@ PRESETS = {
     "paper": PipelineConfig(mirror_target=False, refine=False, facing_check=False,
                             smoothing=None, denoise=False, rest_pose=False, foot_lock=None),
     "regressed": PipelineConfig(),
-    "fitted": PipelineConfig(fit_source=FitSettings(), smoothing=None, denoise=False),
+    # The facing check went: with the fit it changed nothing beyond noise (docs/source_fit.md).
+    "fitted": PipelineConfig(fit_source=FitSettings(), facing_check=False, smoothing=None,
+                             denoise=False),
 }
-DEFAULT_PRESET = "regressed"
+DEFAULT_PRESET = "fitted"
 
 # What the weights' stages were trained on, for files from before weights said so (metadata
 # "pipeline"): the denoiser learned SKR's refined readings after the default smoothing.
