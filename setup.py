@@ -22,7 +22,8 @@ setup(
     # Only the runtime is installed: `training` (the torch reference) runs from the checkout
     # (`python -m training...` from the repository root), never from site-packages.
     packages=find_packages(include=["minretarget", "minretarget.*"]),
-    package_data={"minretarget": ["data/*.npz", "data/*.json", "data/*.sha256"]},
+    # py.typed: the public API's type hints are for users' type checkers too (PEP 561).
+    package_data={"minretarget": ["data/*.npz", "data/*.json", "data/*.sha256", "py.typed"]},
     install_requires=["numpy>=1.24", "numba>=0.59", "scipy>=1.10"],
     entry_points={"console_scripts": ["minretarget = minretarget.cli:main"]},
     extras_require={

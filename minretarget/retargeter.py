@@ -5,11 +5,14 @@
     for points in frames:                             # (P, 3) each, any P >= 64, any order
         frame = retargeter.step(points)               # frame.vertices (V, 3) in target order
 """
+import os
 import threading
 import warnings
+from collections.abc import Iterable, Iterator
 from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .contacts import plant_feet
 from .facing import CONFIRM, TRIGGER, _check_facing
@@ -17,12 +20,12 @@ from .fit import LOST_COST, body_model, fit_frame, start_fit
 from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics, skinning_transforms
-from .pipeline import as_config, check_pipeline
+from .pipeline import PipelineConfig, as_config, check_pipeline
 from .refine import refine_joints
 from .sampling import seeded_subset
 from .skin import linear_blend_skinning, skinning_weights
 from .skr import mirror_averaged, regress_joints
-from .smrm import check_state, retarget_step
+from .smrm import MotionState, check_state, retarget_step
 from .validation import FitWarning, as_float32_array, as_point_cloud, as_workers, check_body
 from .weights import Weights, load_weights
 
@@ -44,7 +47,8 @@ class RetargetedFrame(NamedTuple):
 
 
 class Retargeter:
-    def __init__(self, weights, config="default", *, warn=True, workers=1):
+    def __init__(self, weights: Weights, config: PipelineConfig | str = "default", *,
+                 warn: bool = True, workers: int = 1) -> None:
         """``weights``: a ``weights.Weights`` (``load_weights``; ``from_weights`` reads a file).
         ``config``: the pipeline (``pipeline.PipelineConfig``, or a preset's name: "default",
         "paper", "regressed", "fitted"), checked against what the weights were trained for
@@ -68,17 +72,19 @@ class Retargeter:
         self.reset()
 
     @classmethod
-    def from_weights(cls, path=None, config="default", *, warn=True, workers=1):
+    def from_weights(cls, path: str | os.PathLike | None = None,
+                     config: PipelineConfig | str = "default", *, warn: bool = True,
+                     workers: int = 1) -> "Retargeter":
         """A retargeter with the weights file at ``path`` (None: the shipped default)."""
         return cls(load_weights(path), config, warn=warn, workers=workers)
 
     @property
-    def config(self):
+    def config(self) -> PipelineConfig:
         """The pipeline this retargeter runs (``pipeline.PipelineConfig``)."""
         return self._config
 
     @config.setter
-    def config(self, config):
+    def config(self, config: PipelineConfig | str) -> None:
         config = check_pipeline(self.weights, as_config(config))
         if self._config is not None and self._state is not None and (
                 self._config.denoise != config.denoise and self.weights.denoise is not None):
@@ -86,7 +92,9 @@ class Retargeter:
                              "switching denoise")
         self._config = config
 
-    def set_target(self, points, faces=None, tpose_joints=None, skin_weights=None):
+    def set_target(self, points: ArrayLike, faces: ArrayLike | None = None,
+                   tpose_joints: ArrayLike | None = None,
+                   skin_weights: ArrayLike | None = None) -> None:
         """Set the body to animate and restart the stream.
 
         Args:
@@ -121,7 +129,7 @@ class Retargeter:
         self.target = Target(points, faces, tpose_joints, skin_weights)
         self.reset()
 
-    def reset(self):
+    def reset(self) -> None:
         """Forget the motion seen so far (the target stays). The calling thread owns the new
         stream: a stream carries state from frame to frame, so frames from two threads would
         mix two motions into one; another thread's frame is refused (``_check_owner``) until
@@ -138,7 +146,7 @@ class Retargeter:
                                "that last called reset, set_target or set its state); use one "
                                "Retargeter per thread, or call reset() in this one first")
 
-    def warm_up(self, skeleton=False):
+    def warm_up(self, skeleton: bool = False) -> None:
         """Compile every kernel that a stream of clouds (``skeleton``: of joints) uses with
         this retargeter's settings, or load them from numba's on-disk cache, by retargeting
         two frames of the target's own points (about 1,000 of them; or its T-pose joints);
@@ -155,7 +163,7 @@ class Retargeter:
         self.reset()
 
     @property
-    def state(self):
+    def state(self) -> MotionState | None:
         """The recurrent state after the frames seen so far (``smrm.MotionState``), or None
         at a stream's start. Save it to continue the stream later in another process: set
         it back, on a retargeter with the same weights and target, and the next frames come
@@ -165,7 +173,7 @@ class Retargeter:
         return self._state
 
     @state.setter
-    def state(self, state):
+    def state(self, state: MotionState | None) -> None:
         self._state = None if state is None else check_state(self.weights.smrm, state,
                                                              self.denoiser)
         self._owner = threading.get_ident()
@@ -182,7 +190,7 @@ class Retargeter:
         """The weights' rest-pose model if ``rest_pose`` is on and they have one, else None."""
         return self.weights.rest_pose if self.config.rest_pose else None
 
-    def step(self, points):
+    def step(self, points: ArrayLike) -> RetargetedFrame:
         """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
         if self.target is None:
             raise RuntimeError("call set_target before step")
@@ -192,7 +200,8 @@ class Retargeter:
         points = self._thinned(points, self._frame())
         return self._step_joints(self._skr(points, self.config.mirror_source), points)
 
-    def step_skeleton(self, source_joints, points=None):
+    def step_skeleton(self, source_joints: ArrayLike,
+                      points: ArrayLike | None = None) -> RetargetedFrame:
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
         SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``).
         ``points``: the (P, 3) cloud the skeleton was found in (``skeleton``), if any: the
@@ -224,7 +233,7 @@ class Retargeter:
         return RetargetedFrame(vertices, joints, rotations, root,
                                self._state.previous_joints.copy())
 
-    def skeleton(self, points):
+    def skeleton(self, points: ArrayLike) -> np.ndarray:
         """The source skeleton(s) SKR finds, cloud by cloud: mirror-averaged if
         ``mirror_source``, refined if ``refine``; what ``step`` reads before the facing check,
         smoothing and denoising.
@@ -295,7 +304,7 @@ class Retargeter:
                           FitWarning, stacklevel=4)
         return joints.astype(np.float32)
 
-    def pose(self, rotations, root):
+    def pose(self, rotations: ArrayLike, root: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
         vertices and (J, 3) joints, exactly as ``step`` does after SMRM and the foot
         contacts; or T frames at once: (T, J, 4) and (T, 3) -> (T, V, 3) and (T, J, 3)."""
@@ -309,7 +318,7 @@ class Retargeter:
         transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
         return linear_blend_skinning(target.points, target.skin_weights, transforms), joints
 
-    def retarget_sequence(self, frames):
+    def retarget_sequence(self, frames: ArrayLike) -> RetargetedFrame:
         """Retarget a whole recorded sequence at once (offline): the same result as ``run``,
         up to float32 rounding, faster per frame.
 
@@ -343,7 +352,7 @@ class Retargeter:
         vertices, joints = self.pose(rotations, root)
         return RetargetedFrame(vertices, joints, rotations, root, source_joints)
 
-    def run(self, frames):
+    def run(self, frames: Iterable[ArrayLike]) -> Iterator[RetargetedFrame]:
         """Retarget an iterable of (P, 3) source frames lazily, one RetargetedFrame each.
 
         Memory stays constant in the number of frames: nothing is kept between frames but

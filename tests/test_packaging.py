@@ -32,6 +32,12 @@ def test_setup_installs_only_minretarget(monkeypatch):
     assert set(packages) == set(setuptools.find_packages(str(ROOT), include=["minretarget*"]))
 
 
+def test_the_type_hints_ship_with_the_package(monkeypatch):
+    """PEP 561: the marker file goes into the wheel, so users' type checkers read the hints."""
+    data = setup_arguments(monkeypatch)["package_data"]["minretarget"]
+    assert "py.typed" in data and (ROOT / "minretarget" / "py.typed").is_file()
+
+
 CHECK = """
 import importlib.metadata, importlib.util
 try:
