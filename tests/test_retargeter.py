@@ -194,14 +194,14 @@ def test_skeletons_go_through_the_refiner_unless_refine_is_off(tiny_weights, tin
     from minretarget.skr import mirror_averaged, regress_joints
     target, sources, _ = tiny_stream
     k = tiny_weights.config.refine_neighbours
-    refined = Retargeter(tiny_weights, warn=False)
+    refined = Retargeter(tiny_weights, "regressed", warn=False)
     plain = Retargeter(tiny_weights, PipelineConfig(refine=False), warn=False)
     for retargeter in (refined, plain):
         retargeter.set_target(target)
     skr_target = mirror_averaged(lambda c: regress_joints(c, tiny_weights.skr), target)
     np.testing.assert_allclose(plain.target.tpose_joints, skr_target, atol=1e-6)
     assert np.abs(refined.target.tpose_joints - skr_target).max() > 1e-3
-    by_hand = Retargeter(tiny_weights, warn=False)
+    by_hand = Retargeter(tiny_weights, "regressed", warn=False)
     by_hand.set_target(target)
     for points in sources[:5]:
         skeleton = refine_joints(points, regress_joints(points, tiny_weights.skr),
@@ -229,9 +229,9 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
     from conftest import denoised_stream
     target, sources, _ = tiny_stream
     without = tiny_weights._replace(config=tiny_weights.config.without_denoiser(), denoise=None)
-    on, off, bare = (Retargeter(tiny_weights, warn=False),
+    on, off, bare = (Retargeter(tiny_weights, "regressed", warn=False),
                      Retargeter(tiny_weights, PipelineConfig(denoise=False), warn=False),
-                     Retargeter(without, warn=False))
+                     Retargeter(without, "regressed", warn=False))
     for retargeter in (on, off, bare):
         retargeter.set_target(target)
     assert on.denoiser is tiny_weights.denoise and off.denoiser is None is bare.denoiser
