@@ -276,14 +276,14 @@ def test_nothing_written_before_the_first_frame_fails_or_stops(inputs, tmp_path,
 def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):
     """The Python side of resuming: a saved MotionState set on a new Retargeter."""
     target, sources, _ = tiny_stream
-    unbroken = Retargeter(tiny_weights, warn=False)
+    unbroken = Retargeter(tiny_weights, "regressed", warn=False)
     unbroken.set_target(target)
     expected = [unbroken.step(points).vertices for points in sources[:20]]
-    first = Retargeter(tiny_weights, warn=False)
+    first = Retargeter(tiny_weights, "regressed", warn=False)
     first.set_target(target)
     for points in sources[:12]:
         first.step(points)
-    second = Retargeter(tiny_weights, warn=False)
+    second = Retargeter(tiny_weights, "regressed", warn=False)
     second.set_target(target)
     second.state = first.state
     resumed = [second.step(points).vertices for points in sources[12:20]]
@@ -301,7 +301,7 @@ def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):
 def test_a_checkpoint_keeps_the_whole_state(tiny_weights, tiny_stream, tmp_path):
     """Every MotionState field, the facing check's included, comes back from a checkpoint."""
     target, sources, _ = tiny_stream
-    retargeter = Retargeter(tiny_weights, warn=False)
+    retargeter = Retargeter(tiny_weights, "regressed", warn=False)
     retargeter.set_target(target)
     for points in sources[:3]:
         retargeter.step(points)
@@ -325,7 +325,7 @@ def resident_bytes():
 def test_long_stream_memory_is_flat(tiny_weights):
     """10,000 frames through the Python API: the resident size stays put, and no Python
     allocation survives over 2,000 traced frames mid-stream (tracing all would be slow)."""
-    retargeter = Retargeter(tiny_weights, warn=False)
+    retargeter = Retargeter(tiny_weights, "regressed", warn=False)
     rng = np.random.default_rng(0)
     retargeter.set_target(rng.normal(size=(128, 3)).astype(np.float32))
     clouds = [rng.normal(size=(64, 3)).astype(np.float32) for _ in range(16)]
