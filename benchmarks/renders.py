@@ -116,9 +116,10 @@ def motion_numbers(joints, points):
             "lowest_point_min": float(lowest.min())}
 
 
-def retarget(weights, sequence):
-    """Online retargeting of the source clouds -> joints, vertices, SKR joints, seconds."""
-    retargeter = Retargeter(weights)
+def retarget(weights, sequence, config="default"):
+    """Online retargeting of the source clouds by the ``config`` pipeline (a preset's name or
+    a ``PipelineConfig``) -> joints, vertices, SKR joints, seconds."""
+    retargeter = Retargeter(weights, config)
     retargeter.set_target(sequence["target_tpose_points"], sequence["target_faces"])
     start = time.perf_counter()
     frames = list(retargeter.run(sequence["source_points"]))
