@@ -634,8 +634,12 @@ def fit_frame(model, settings, state, cloud, reading):
     grid = build_grid(cloud)
     rest, tpose_joints = shaped(model, state.shape)
     before, last = state.joints
-    pulls = ((settings.reading_pull, reading),
-             (settings.motion_pull, last + 0.5 * (last - before)))
+    # After a frame without the body, its motion is stale: no pull to it, and the frame found
+    # starts the motion again (a body that jumped would otherwise be pulled back for good).
+    moving = state.cost <= LOST_COST
+    pulls = ((settings.reading_pull, reading),)
+    if moving:
+        pulls += ((settings.motion_pull, last + 0.5 * (last - before)),)
     race = settings._replace(iterations=min(settings.race_iterations, settings.iterations))
     local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, state.local,
                                          state.root, race, pulls)
@@ -663,7 +667,8 @@ def fit_frame(model, settings, state, cloud, reading):
                                                  local, root, settings, pulls)
     elif calibration:
         calibration = ()                 # calibrated: the clouds are no longer needed
-    return (FitState(t + 1, shape, local, root, np.stack([last, joints]), calibration, cost),
+    return (FitState(t + 1, shape, local, root, np.stack([last if moving else joints, joints]),
+                     calibration, cost),
             joints, reseeded)
 
 

@@ -1,5 +1,7 @@
 """The source fit (minretarget.fit): kernels against NumPy twins and finite differences,
 rotations kept rotations, and fits that recover a known pose and shape."""
+import warnings
+
 import numpy as np
 import pytest
 from minretarget.nearest import build_grid
@@ -333,3 +335,31 @@ def test_a_cloud_without_the_body_is_warned_of_by_frame_and_recovered_from(sampl
     # one frame later the fit is where it would have been without the lost frame
     expected = list(plain.run(clouds))[4].source_joints
     assert np.linalg.norm(frames[4].source_joints - expected, axis=1).mean() < 0.02
+
+
+def test_a_body_that_jumps_away_is_found_again_the_next_frame():
+    """A cut in the capture (the body 2.5 m away from one frame on, as when a clip restarts):
+    the last motion must not pull the fit back to where the body was; one frame is held (the
+    motion still pulls there), then the fit follows the body."""
+    from minretarget.retargeter import Retargeter
+    from minretarget.validation import FitWarning
+    from minretarget.weights import load_weights
+    with np.load(fit.BODY_MODEL.with_name("sample.npz")) as data:
+        clouds, target = data["source_points"][:8], data["target_points"]
+    settings = fit.FitSettings(calibration_frames=2, settle_rounds=1)
+    config = PipelineConfig(smoothing=None, denoise=False, foot_lock=None, facing_check=False,
+                            fit_source=settings)
+    retargeter, moved = (Retargeter(load_weights(), config, warn=False) for _ in range(2))
+    for each in (retargeter, moved):
+        each.set_target(target)
+    jump = np.float32([2.5, 0.0, 0.0])
+    stream = [*clouds[:4], *(cloud + jump for cloud in clouds[4:])]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FitWarning)
+        frames = [retargeter.step(cloud) for cloud in stream]
+        lost = [t for t in range(1, len(stream))            # held: the last frame's joints
+                if np.array_equal(frames[t].source_joints, frames[t - 1].source_joints)]
+        # the same body read where it now is, from a stream that never saw the jump
+        truth = [moved.step(cloud + jump) for cloud in clouds][-1].source_joints
+    assert lost in ([], [4]), lost
+    assert np.linalg.norm(frames[-1].source_joints - truth, axis=1).mean() < 0.03
