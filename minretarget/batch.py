@@ -31,7 +31,9 @@ a job's keys). Pairs run longest first on a pool of
 worker processes (``--workers``, default one per core) or of Ray actors (``--ray``), each
 with one BLAS and numba thread, each keeping the weights and every target's set-up (skeleton
 and skinning weights, keyed by the target's content) between pairs; of the pairs equally
-long, a worker takes one whose target it has set up, else one whose target no worker has. A
+long, a worker takes one whose target it has set up, else one whose target no worker has.
+The batch's process reads each pair's target as it hands the pair out (``with_target``), so
+that a worker needs no mesh reader. A
 failing pair (a bad
 file, a NaN frame) is recorded with its reason and the others go on; a pair whose worker dies
 is run again (``ATTEMPTS`` in all), from its checkpoint. ``--resume`` skips the pairs done and
@@ -179,6 +181,17 @@ class Pair(NamedTuple):
     options: dict      # every key of OPTIONS (paths absolute), as ``parse_options`` takes
     frames: int        # T, the source's frame count (30 fps for BVH)
     folder: str        # absolute path of its output folder
+    target_read: "TargetRead | None" = None     # its target, read as it is handed out
+
+
+class TargetRead(NamedTuple):
+    """A pair's target as ``cli.target_of`` read it in the batch's process (``with_target``),
+    with what that read printed and warned, for the worker to use instead of reading it."""
+    points: np.ndarray     # (V, 3) float32 canonical points
+    faces: "np.ndarray | None"
+    space: object          # its units.Space
+    printed: str           # the lines it printed (its units and up axis)
+    warned: list           # [(warning category, message)]
 
 
 class JobError(ValueError):
@@ -465,6 +478,37 @@ def _entry(pair, status, **fields):
     return {"pair": pair.name, **spec(pair), "frames": pair.frames, "status": status, **fields}
 
 
+def with_target(pair):
+    """``pair`` with its target read here as ``cli.target_of`` reads it, and what that printed
+    and warned (``TargetRead``): the batch's process has read every target in the job's
+    check (and so imported the mesh reader, trimesh), and a worker given its pairs' targets
+    does not import it (0.4 s of each worker's start, for a few milliseconds here a pair).
+    Read as the pair is handed out, so that only the pairs in flight hold their points.
+    A target that does not read now is left to the worker, which fails the pair with the
+    reason."""
+    said = io.StringIO()
+    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(said):
+        warnings.simplefilter("always", InputWarning)
+        try:
+            read = target_of(parse_options(pair.source, pair.target, pair.folder,
+                                           pair.options))
+        except Exception:       # noqa: BLE001  (the worker's read fails it with the reason)
+            return pair
+    return pair._replace(target_read=TargetRead(
+        *read, said.getvalue(), [(w.category, str(w.message)) for w in caught]))
+
+
+def _target(args, read):
+    """``cli.target_of(args)``, or the same from ``read`` (a ``TargetRead``, or None): its
+    lines printed and its warnings given again, as that read gave them."""
+    if read is None:
+        return target_of(args)
+    sys.stdout.write(read.printed)
+    for category, message in read.warned:
+        warnings.warn(message, category, stacklevel=2)
+    return read.points, read.faces, read.space
+
+
 def run_pair(pair):
     """Run one pair into its folder as ``minretarget retarget`` would (``cli.target_of``,
     ``cli.source_of``, ``cli.retarget_to_files``) and mark it done (module docstring); never
@@ -487,7 +531,7 @@ def run_pair(pair):
             args = parse_options(pair.source, pair.target, pair.folder, pair.options)
             with blas_threads(args.threads):
                 retargeter = _retargeter(args)
-                _set_target(retargeter, args, *target_of(args))
+                _set_target(retargeter, args, *_target(args, pair.target_read))
                 open_at, _, settings = source_of(args)
                 # A checkpoint: the pair was cut short (a killed worker or batch), go on from
                 # it; else any files there are a killed run's from before its first checkpoint.
@@ -723,7 +767,10 @@ def run_batch(job, out_dir, workers=None, ray=None, resume=False, progress=True)
             show(name, frames)
 
     try:
-        for entry in schedule(todo, pool.slots, pool.submit, pool.lost, drain):
+        def submit(slot, pair):
+            return pool.submit(slot, with_target(pair))
+
+        for entry in schedule(todo, pool.slots, submit, pool.lost, drain):
             entries[entry["pair"]] = entry
             show(entry["pair"], entry["frames"])
             failed = sum(e["status"] == "failed" for e in entries.values())

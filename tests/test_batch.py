@@ -197,6 +197,28 @@ def test_equal_pairs_share_out_the_targets_and_longer_pairs_start_first():
     assert sorted(map(sorted, targets.values())) == [["x"], ["y"]]
 
 
+def test_a_target_handed_out_runs_as_one_read_by_the_worker(library, reference, tmp_path):
+    """The batch's process reads a pair's target as it hands the pair out (``with_target``),
+    so that a worker needs no mesh reader: the pair's files and its summary entry (the lines
+    about units, the warnings) are those of a worker reading it; a target that does not
+    read then is left to the worker, which fails the pair with the reason."""
+    pairs = batch.read_job(write_job(library), tmp_path / "job")
+    pair = next(p for p in pairs if p.name == "wide/short")
+    handed = batch.with_target(pair._replace(folder=str(tmp_path / "handed")))
+    assert handed.target_read is not None and pair.target_read is None
+    read = batch.run_pair(pair._replace(folder=str(tmp_path / "read")))
+    entry = batch.run_pair(handed)
+    assert read["read_as"][0].startswith("target: ") and read["warnings"]   # a T-pose warning
+    assert {**entry, "seconds": 0} == {**read, "seconds": 0}
+    assert files(tmp_path / "handed") == files(tmp_path / "read") == {
+        k.removeprefix("wide/short/"): v for k, v in reference.items()
+        if k.startswith("wide/short/")}
+    gone = pair._replace(target=str(tmp_path / "gone.ply"), folder=str(tmp_path / "gone"))
+    assert batch.with_target(gone) is gone
+    failed = batch.run_pair(gone)
+    assert failed["status"] == "failed" and "gone.ply" in failed["error"]
+
+
 def test_a_failing_pair_does_not_stop_the_others(library, reference, tmp_path, capsys):
     clouds = walk(20, 1)
     clouds[5, 3] = np.nan
