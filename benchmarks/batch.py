@@ -1,6 +1,6 @@
 """Throughput of ``minretarget batch``: 1 and 2 local workers, the overhead per pair, Ray.
 
-    python benchmarks/batch.py [--quick] [--repeats N] [--json OUT.json]
+    python benchmarks/batch.py [--quick] [--repeats N] [--quiet-wait S] [--json OUT.json]
 
 The job: the shipped sample's source (CMU walk 08_01, 2048-point clouds) played forward and
 backward, tiled to 300 frames (--quick: its 68 frames), onto its target and three stretched
@@ -20,13 +20,19 @@ started in this process (``batch.run_batch``) with every pair's frames counted:
     ``fixed_seconds_per_pair``, the fixed seconds over 8 pairs. The overhead per pair is
     their sum. ``local_1_pair_seconds``: each pair's seconds in the best 1-worker batch, in
     the order run (the first pays the worker's set-up, each new target its set-up);
-  * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started here, not
-    timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
+  * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started for that run
+    alone, not timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
 Every process has one BLAS thread. Each time is the best of N runs (default 2), the settings
-taking turns: the least disturbed by other work. On a shared machine the figures are noisy:
-the load average is recorded before and after, and for each batch run the cores that other
-users' processes kept busy meanwhile (``other_users_cores_busy``, local runs only, from
-/proc/stat: Linux only).
+taking turns: the least disturbed by other work. Ray runs only during its own runs: its idle
+processes (about 0.03 cores) took from the 2-worker local runs, which use both cores, and not
+from the 1-worker ones. On a shared machine the figures are noisy: the load average is
+recorded before and after, and for each run but Ray's the cores that other users' processes
+kept busy meanwhile (``other_users_cores_busy``, from /proc/stat: Linux only);
+``--quiet-wait S`` waits, before each run, up to S seconds for them to fall below 0.1 cores.
+``scaling_2_workers_each_repeat`` is the ratio within each repeat.
+The machine's own ceiling for that ratio, with no pool: ``ceiling_2_processes``, 2 x the wall
+time of one ``minretarget retarget`` process for the first pair (``single``) over that of two
+such processes run at once (``single_2_at_once``, each into its own folder); also per repeat.
 """
 import argparse
 import json
@@ -49,6 +55,8 @@ from minretarget.sources import SAMPLE, load_sample, open_source
 from minretarget.units import CANONICAL
 
 FORMATS = ["npz", "bvh"]
+QUIET = 0.1            # cores other users may keep busy for the machine to count as quiet
+RAY_SETTLE = 5         # seconds for a new Ray instance's processes to finish starting
 STRETCH = {"base": (1.0, 1.0, 1.0), "tall": (1.0, 1.12, 1.0), "short": (0.95, 0.88, 0.95),
            "wide": (1.15, 1.0, 1.2)}      # target name -> (x, y, z) scale of the sample's
 
@@ -100,13 +108,17 @@ def busy_seconds():
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK"), ours
 
 
-def single_run_seconds(folder, out):
-    """Wall time of one `minretarget retarget` process for the first pair."""
+def single_run_seconds(folder, *outs):
+    """Wall time of one `minretarget retarget` process for the first pair, or of as many
+    run at once as ``outs`` (each into its own folder): independent processes, no pool."""
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "minretarget", "retarget", str(folder / "walk.npy"),
-                    str(folder / "base.ply"), "--out", str(out), "--format", ",".join(FORMATS)],
-                   check=True, capture_output=True,
-                   env={**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
+    runs = [subprocess.Popen([sys.executable, "-m", "minretarget", "retarget",
+                              str(folder / "walk.npy"), str(folder / "base.ply"), "--out",
+                              str(out), "--format", ",".join(FORMATS), "--threads", "1"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             env={**os.environ, "OPENBLAS_NUM_THREADS": "1",
+                                  "OMP_NUM_THREADS": "1"}) for out in outs]
+    assert all(run.wait() == 0 for run in runs)
     return time.perf_counter() - start
 
 
@@ -123,46 +135,90 @@ def frames_seconds(folder, out):
     return time.perf_counter() - start
 
 
-def run(quick, repeats):
-    import ray
+def others_busy(seconds):
+    """Cores that other users' processes kept busy over the next ``seconds``."""
+    machine, ours = busy_seconds()
+    time.sleep(seconds)
+    machine, ours = np.subtract(busy_seconds(), (machine, ours))
+    return (machine - ours) / seconds
 
-    results = {"quick": quick, "repeats": repeats, "load_average_before": os.getloadavg(),
-               "cpus": os.cpu_count()}
-    length, pairs = (68 if quick else 300), 8                    # frames per pair, pairs
-    # First: Ray's idle processes then run alongside every measurement alike.
+
+def wait_for_quiet(limit, threshold=QUIET):
+    """Wait, at most ``limit`` seconds, until other users' processes have kept fewer than
+    ``threshold`` cores busy over 3 s; returns the seconds waited (0 when ``limit`` is 0)."""
+    start = time.perf_counter()
+    while time.perf_counter() - start < limit and others_busy(3) >= threshold:
+        pass
+    return time.perf_counter() - start
+
+
+def start_ray():
+    """A local Ray instance of 2 CPUs, settled (its processes' start-up done), not timed."""
+    import ray
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
              _node_ip_address="127.0.0.1")
+    time.sleep(RAY_SETTLE)
+    return ray
+
+
+def run(quick, repeats, quiet_wait=0):
+    results = {"quick": quick, "repeats": repeats, "load_average_before": os.getloadavg(),
+               "cpus": os.cpu_count(), "quiet_wait_seconds": quiet_wait}
+    length, pairs = (68 if quick else 300), 8                    # frames per pair, pairs
     settings = {"local_1": ("job", {"workers": 1}), "local_2": ("job", {"workers": 2}),
                 "ray_2": ("job", {"workers": 2, "ray": "auto"}),
                 "local_1_half": ("half", {"workers": 1})}          # 4 of the pairs
-    seconds = {name: [] for name in [*settings, "single", "frames"]}
-    others = {"local_1": [], "local_2": []}        # Ray's workers are not this process's children
+    seconds = {name: [] for name in [*settings, "single", "frames", "single_2_at_once"]}
+    # Other users' busy cores during each run (not Ray's: its processes are not ours).
+    others = {name: [] for name in seconds if name != "ray_2"}
+    waited = []                                    # seconds waited for a quiet machine
     pair_seconds = []                               # each local_1 run's pairs, in order run
-    try:
-        with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
-            folder = Path(temporary)
-            jobs = {"job": make_job(folder, length),
-                    "half": write_job(folder / "half.json", list(STRETCH)[:2])}
-            frames_seconds(folder, folder / "compile")
-            for index in range(repeats):   # interleaved: a change of load touches every setting
-                for name, (job, options) in settings.items():
-                    machine, ours = busy_seconds()
-                    summary = batch.run_batch(jobs[job], folder / f"{name}_{index}",
-                                              progress=False, **options)
-                    assert summary["done"] == (pairs if job == "job" else pairs // 2), summary
-                    machine, ours = np.subtract(busy_seconds(), (machine, ours))
-                    seconds[name].append(summary["seconds"])
-                    if name in others:
-                        others[name].append((machine - ours) / summary["seconds"])
-                    if name == "local_1":
-                        pair_seconds.append(run_order(folder / f"{name}_{index}", summary))
-                seconds["single"].append(single_run_seconds(folder, folder / f"single_{index}"))
-                seconds["frames"].append(frames_seconds(folder, folder / f"frames_{index}"))
-            identical = {name: files(folder / f"{name}_0") == files(folder / "local_1_0")
-                         for name in ("local_2", "ray_2")}
-    finally:
-        ray.shutdown()
-    local_1, local_2, on_ray, half, single, frames = (min(seconds[name]) for name in seconds)
+
+    def timed(name, measure):
+        """``measure()`` -> seconds, recorded with the other users' busy cores meanwhile."""
+        waited.append(wait_for_quiet(quiet_wait))
+        machine, ours = busy_seconds()
+        start = time.perf_counter()
+        value = measure()
+        wall = time.perf_counter() - start
+        machine, ours = np.subtract(busy_seconds(), (machine, ours))
+        seconds[name].append(value)
+        if name in others:
+            others[name].append((machine - ours) / wall)
+
+    with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
+        folder = Path(temporary)
+        jobs = {"job": make_job(folder, length),
+                "half": write_job(folder / "half.json", list(STRETCH)[:2])}
+        frames_seconds(folder, folder / "compile")
+        for index in range(repeats):   # interleaved: a change of load touches every setting
+            for name, (job, options) in settings.items():
+                # Ray runs only while its own batch is timed: its idle processes (about
+                # 0.03 cores) would otherwise take from the local 2-worker runs alone.
+                ray = start_ray() if options.get("ray") else None
+                try:
+                    def measure():
+                        summary = batch.run_batch(jobs[job], folder / f"{name}_{index}",
+                                                  progress=False, **options)
+                        assert summary["done"] == (pairs if job == "job" else pairs // 2)
+                        return summary["seconds"]
+                    timed(name, measure)
+                finally:
+                    if ray is not None:
+                        ray.shutdown()
+                        time.sleep(RAY_SETTLE)          # its processes gone before the next
+                if name == "local_1":
+                    summary = json.loads((folder / f"{name}_{index}" / batch.SUMMARY)
+                                         .read_text())
+                    pair_seconds.append(run_order(folder / f"{name}_{index}", summary))
+            timed("single", lambda: single_run_seconds(folder, folder / f"single_{index}"))
+            timed("frames", lambda: frames_seconds(folder, folder / f"frames_{index}"))
+            timed("single_2_at_once", lambda: single_run_seconds(
+                folder, *(folder / f"single_{index}_{k}" for k in (1, 2))))
+        identical = {name: files(folder / f"{name}_0") == files(folder / "local_1_0")
+                     for name in ("local_2", "ray_2")}
+    local_1, local_2, on_ray, half, single, frames, two = (min(seconds[name])
+                                                           for name in seconds)
     total = pairs * length
     marginal = (local_1 - half) / (pairs - pairs // 2)       # seconds a pair adds
     fixed = local_1 - pairs * marginal                       # seconds a batch pays once
@@ -171,6 +227,11 @@ def run(quick, repeats):
         frames_per_second_1_worker=total / local_1,
         frames_per_second_2_workers=total / local_2,
         scaling_2_workers=local_1 / local_2,
+        scaling_2_workers_each_repeat=[on_1 / on_2 for on_1, on_2 in
+                                       zip(seconds["local_1"], seconds["local_2"])],
+        ceiling_2_processes=2 * single / two,
+        ceiling_2_processes_each_repeat=[2 * one / both for one, both in
+                                         zip(seconds["single"], seconds["single_2_at_once"])],
         seconds=seconds, single_run_seconds=single, frames_seconds_per_pair=frames,
         overhead_seconds_per_pair=local_1 / pairs - frames,
         overhead_fraction=(local_1 / pairs - frames) / single,
@@ -182,7 +243,8 @@ def run(quick, repeats):
         single_run_overhead_fraction=(single - frames) / single,
         ray_overhead_fraction=on_ray / local_2 - 1,
         ray_identical=identical["ray_2"], local_identical=identical["local_2"],
-        other_users_cores_busy=others, load_average_after=os.getloadavg())
+        other_users_cores_busy=others, seconds_waited_for_quiet=sum(waited),
+        load_average_after=os.getloadavg())
     return results
 
 
@@ -191,9 +253,13 @@ def main():
     parser.add_argument("--quick", action="store_true", help="68-frame pairs, not 300")
     parser.add_argument("--repeats", type=int_at_least(1), default=2,
                         help="runs of each setting, the best kept (default 2)")
+    parser.add_argument("--quiet-wait", type=float, default=0, metavar="SECONDS",
+                        help="before each run, wait at most SECONDS for other users' "
+                        f"processes to keep fewer than {QUIET} cores busy (default 0: no "
+                        "wait; a shared machine)")
     parser.add_argument("--json", default=None, help="write the results to this file")
     args = parser.parse_args()
-    results = run(args.quick, args.repeats)
+    results = run(args.quick, args.repeats, args.quiet_wait)
     text = json.dumps(results, indent=2)
     print(text)
     if args.json:
