@@ -36,7 +36,7 @@ import numpy as np
 from ._jit import kernel
 from .analytic import analytic_rotations
 from .conventions import NUM_JOINTS, PARENTS
-from .nearest import _build_grid_kernel, _nearest_kernel, build_grid, nearest
+from .nearest import _build_grid_kernel, _nearest_kernel, build_grid
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
                          quaternion_to_matrix)
 from .sampling import seeded_subset
