@@ -91,7 +91,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
@@ -231,16 +230,6 @@ def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
     return joints, linear_blend_skinning(points, skin_weights, transforms)
 
 
-class FeetState(NamedTuple):
-    """What ``contacts.plant_feet`` carries from frame to frame (the foot fields of
-    ``smrm.MotionState``), for the analytic baseline, which has no SMRM state."""
-    frames_seen: int
-    toe_filtered: np.ndarray     # (2, 3) float32
-    toe_anchor: np.ndarray       # (2, 3) float32
-    foot_offset: np.ndarray      # (2, 3) float32
-    feet_planted: np.ndarray     # (2,) bool
-
-
 def analytic_root(source_joints, tpose_joints):
     """(T, J, 3) source skeletons, the target's (J, 3) T-pose -> (T, 3) roots: each source root
     scaled by the target's leg length over the mean source leg length so far, as SMRM scales
@@ -258,6 +247,12 @@ def analytic_plain(source_joints, target):
     return pose_with_rig(analytic_rotations(source_joints, target.tpose_joints),
                          analytic_root(source_joints, target.tpose_joints),
                          target.tpose_joints, target.points, target.skin_weights)
+
+
+def rest_pose_of(retargeter):
+    """The rest-pose model ``retargeter``'s SMRM uses (its config's ``rest_pose`` on and the
+    weights have one), or None."""
+    return retargeter.weights.rest_pose if retargeter.config.rest_pose else None
 
 
 def analytic_full(source_joints, target, rest_pose=None, foot_lock=None):
@@ -289,10 +284,8 @@ def analytic_full(source_joints, target, rest_pose=None, foot_lock=None):
                            for joints, mean in zip(source_joints,
                                                    lengths.astype(np.float32))]))
     root = analytic_root(source_joints, tpose).astype(np.float32)
-    feet = np.zeros((2, 3), np.float32)
-    state = FeetState(0, feet, feet.copy(), feet.copy(), np.zeros(2, bool))
-    for t in range(len(rotations)):       # the lock tracks the toes even when off
-        state = state._replace(frames_seen=t + 1)
+    state = None
+    for t in range(len(rotations) if foot_lock is not None else 0):
         rotations[t], state = plant_feet(rotations[t], root[t], tpose, state, foot_lock)
     return pose_with_rig(rotations, root, tpose, target.points, target.skin_weights)
 
@@ -378,7 +371,7 @@ def run_sequence(weights, sequence, wanted=ROWS):
         denoised) with what ``retargeter`` (the row's model) gives SMRM's prior and after it:
         its rest-pose model and its foot lock (``analytic_full``)."""
         return analytic_full(np.stack([f.source_joints for f in frames]), target,
-                             retargeter.rest_pose_model, retargeter.config.foot_lock)
+                             rest_pose_of(retargeter), retargeter.config.foot_lock)
 
     mirrored_frames = functools.cache(lambda: list(mirrored.run(sequence["source_points"])))
     fitted_frames = functools.cache(lambda: streamed(fitted))

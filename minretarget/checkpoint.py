@@ -2,13 +2,9 @@
 
 Files in the output folder while a run goes on (removed when it completes):
     checkpoint.npz    replaced atomically at the start, every ``CHECKPOINT_EVERY`` frames
-                      and at Ctrl-C: ``frames_done``; the SMRM state after those frames
-                      (``smrm.MotionState``: ``encoder_hidden``, ``decoder_hidden``,
-                      ``previous_joints``, ``smoothed_joints``, ``joint_velocity``,
-                      ``denoise_hidden``, ``source_bone_lengths``,
-                      ``frames_seen``, the foot contacts' ``toe_filtered``, ``toe_anchor``,
-                      ``foot_offset``, ``feet_planted``, the facing check's
-                      ``facing_reference``, ``facing_away_frames``); ``run``,
+                      and at Ctrl-C: ``frames_done``; the stream's state after those frames
+                      as ``state.*`` arrays (``stages.stream_arrays``: each stage's own,
+                      with its version, e.g. ``state.smrm.encoder_hidden``); ``run``,
                       JSON of the inputs and options a resumed run must repeat (``run_record``).
                       Plain arrays: it loads without pickle.
     checkpoint.track  the small per-frame arrays, one float32 record a frame, appended as
@@ -36,25 +32,26 @@ import numpy as np
 
 from .atomic import atomic_write
 from .contacts import FootLock
-from .fit import FitSettings, fit_state_arrays, fit_state_from_arrays
+from .fit import FitSettings
 from .conventions import NUM_JOINTS
 from .formats.npz import ARCHIVE_ERRORS, load_npz
 from .outputs import previous_outputs, remove_outputs
 from .smoothing import Smoothing
 from .pipeline import PipelineConfig
-from .smrm import MotionState, check_state
+from .stages import stream_arrays, stream_from_arrays
 from .units import CANONICAL
 from .weights import flatten_weights
 
 CHECKPOINT, TRACK = "checkpoint.npz", "checkpoint.track"
 PREVIOUS_RUN = ".previous_run"
 CHECKPOINT_EVERY = 30        # frames (1 s at 30 fps): at most this much work redone after a kill
-VERSION = 8          # 2: the state holds the smoothed joints, their speed, the longest leg;
+VERSION = 9          # 2: the state holds the smoothed joints, their speed, the longest leg;
 #                      3: and the foot contacts; 4: the mean leg length, not the longest;
 #                      5: and the denoiser's (the smoothed and the denoised joints apart);
 #                      6: the denoiser's two GRU states (the skeleton's, its mirror image's);
 #                      7: the mean source bone lengths (for the rest poses), not the leg's;
-#                      8: and the facing check's reference heading and count
+#                      8: and the facing check's reference heading and count;
+#                      9: each stage's state apart, with its own version (stages.py)
 # The fields of a track record, in order, with their shapes.
 FIELDS = (("joints", (NUM_JOINTS, 3)), ("rotations", (NUM_JOINTS, 4)), ("root", (3,)),
           ("source_joints", (NUM_JOINTS, 3)))
@@ -189,17 +186,16 @@ def run_record(source, target, weights, formats, space, points, seed, config=Pip
             **({"source_fit": list(config.fit_source)} if fitted else {})}
 
 
-def save_checkpoint(out_dir, run, state, frames_done, track, fit_state=None):
-    """Record that ``frames_done`` frames are complete, with the SMRM ``state`` after them
-    (None before the first) and the source fit's (``fit.FitState``, if the run fits); their
-    track records are synced to disk first."""
+def save_checkpoint(out_dir, run, stages, state, frames_done, track):
+    """Record that ``frames_done`` frames are complete, with the stream's ``state`` after
+    them (``stages.StreamState`` of the retargeter's ``stages``; None before the first);
+    their track records are synced to disk first."""
     track.sync()
     arrays = {"version": np.array(VERSION), "run": np.array(json.dumps(run, sort_keys=True)),
               "frames_done": np.array(frames_done, np.int64)}
     if state is not None:
-        arrays.update(state._asdict(), frames_seen=np.array(state.frames_seen, np.int64))
-    if fit_state is not None:
-        arrays.update({f"fit.{key}": value for key, value in fit_state_arrays(fit_state).items()})
+        arrays.update({f"state.{key}": value
+                       for key, value in stream_arrays(stages, state).items()})
     with atomic_write(Path(out_dir) / CHECKPOINT) as file:
         np.savez(file, **arrays)
 
@@ -227,12 +223,13 @@ def difference(key, then, now):
     return f"{key} {shown(then)} then, {shown(now)} now"
 
 
-def load_checkpoint(out_dir, run, weights):
-    """The checkpoint in ``out_dir``: (frames_done, MotionState or None).
+def load_checkpoint(out_dir, run, stages):
+    """The checkpoint in ``out_dir``: (frames_done, ``stages.StreamState`` or None), the
+    state read for the retargeter's ``stages``.
 
     Raises:
         ValueError naming the file: unreadable, or made by a run with other inputs or
-        options (named, with both values), or a state that does not fit the weights.
+        options (named, with both values), or a state that does not fit the stages.
     """
     path = Path(out_dir) / CHECKPOINT
     try:
@@ -259,9 +256,9 @@ def load_checkpoint(out_dir, run, weights):
     if frames_done == 0:
         return 0, None
     try:
-        state = MotionState(**{name: arrays[name] for name in MotionState._fields})
-        state = check_state(weights.smrm, state._replace(frames_seen=int(state.frames_seen)),
-            weights.denoise if run.get("denoise") else None)
+        state = stream_from_arrays(stages, {key[len("state."):]: value
+                                            for key, value in arrays.items()
+                                            if key.startswith("state.")})
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: bad saved state: {error}") from None
     if state.frames_seen != frames_done:
@@ -270,21 +267,7 @@ def load_checkpoint(out_dir, run, weights):
     return frames_done, state
 
 
-def load_fit_state(out_dir, model):
-    """The source fit's state in ``out_dir``'s checkpoint (``save_checkpoint``), or None if
-    it holds none; ValueError naming the file if it is damaged."""
-    path = Path(out_dir) / CHECKPOINT
-    arrays = load_npz(path)
-    if "fit.frames" not in arrays:
-        return None
-    try:
-        return fit_state_from_arrays({key[len("fit."):]: value for key, value in arrays.items()
-                                      if key.startswith("fit.")}, model)
-    except (KeyError, TypeError, ValueError) as error:
-        raise ValueError(f"{path}: bad saved fit state: {error}") from None
-
-
-def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
+def prepare_out_dir(out_dir, run, stages, resume=False, overwrite=False):
     """Make ``out_dir`` ready for a run; returns (frames_done, state) to start from.
 
     A fresh run refuses a folder that holds a run's files (frames, results, a checkpoint),
@@ -310,7 +293,7 @@ def prepare_out_dir(out_dir, run, weights, resume=False, overwrite=False):
                          "choose another --out, or add --overwrite to replace them"
                          + (" (there is no checkpoint to --resume)" if resume else ""))
     remove_outputs(out_dir, temporaries_only=True)
-    return load_checkpoint(out_dir, run, weights) if resume and previous else (0, None)
+    return load_checkpoint(out_dir, run, stages) if resume and previous else (0, None)
 
 
 def _set_aside(out_dir, names):

@@ -50,12 +50,12 @@ from ._jit import on_first_compile
 from .bvh import read_bvh
 from .bodies import body_lines
 from .checkpoint import (CHECKPOINT, CHECKPOINT_EVERY, PREVIOUS_RUN, TRACK, Track,
-                         abandon_run, finish_run, load_fit_state, prepare_out_dir, run_record,
+                         abandon_run, finish_run, prepare_out_dir, run_record,
                          save_checkpoint)
 from .contacts import FootLock
 from .conventions import MIN_POINTS
 from .extras import MissingExtra, require
-from .fit import FitSettings, body_model
+from .fit import FitSettings
 from .outputs import (DEMO_MARK, FORMATS, frame_name, open_writers, parse_formats,
                       previous_outputs)
 from .render import render
@@ -164,7 +164,7 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     # Before the folder is touched (a Ctrl-C in a cold cache's compile leaves it as it was)
     # and before the progress bar starts.
     retargeter.warm_up(skeleton=source.kind != "points")
-    start, state = prepare_out_dir(out_dir, run, retargeter.weights, resume, overwrite)
+    start, state = prepare_out_dir(out_dir, run, retargeter.stages, resume, overwrite)
     if start:
         source = open_at(start)
     created = not out_dir.exists()
@@ -172,17 +172,15 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     if demo:
         (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
     retargeter.state = state
-    if start and run.get("source_fit"):
-        retargeter.fit_state = load_fit_state(out_dir, body_model())
     step = retargeter.step if source.kind == "points" else retargeter.step_skeleton
     track = Track(out_dir / TRACK, start)
     # A resumed run's npz gets the first frames' vertices again from their saved rotations
     # and root, posed exactly as the interrupted run posed them.
     past = (retargeter.pose(fields["rotations"], fields["root"])[0]
             for fields in track.frames())
-    done, fit_state = start, retargeter.fit_state
+    done, stages = start, retargeter.stages
     try:
-        save_checkpoint(out_dir, run, state, start, track, fit_state)
+        save_checkpoint(out_dir, run, stages, state, start, track)
         with open_writers(out_dir, formats, retargeter.target, source.count, source.fps, space,
                           track, past) as write, stop_between_steps() as stop_asked:
             frames = tqdm(source.frames, total=source.count, initial=start, unit="frame",
@@ -195,16 +193,16 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
                 if index == 0:
                     check_body(data, source.frame_name(0), source.space, role="source")
                 write(frame)
-                done, state, fit_state = index + 1, retargeter.state, retargeter.fit_state
+                done, state = index + 1, retargeter.state
                 if stop_asked:
                     raise KeyboardInterrupt
                 if done % CHECKPOINT_EVERY == 0:
-                    save_checkpoint(out_dir, run, state, done, track, fit_state)
+                    save_checkpoint(out_dir, run, stages, state, done, track)
     except BaseException as error:
         # Ctrl-C or a bad frame: keep what is done, so that --resume goes on from here (and
         # say so); with nothing done, leave the folder as it was.
         if done > start:
-            save_checkpoint(out_dir, run, state, done, track, fit_state)
+            save_checkpoint(out_dir, run, stages, state, done, track)
         elif start == 0:
             track.close()
             abandon_run(out_dir, created)

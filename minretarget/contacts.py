@@ -24,8 +24,8 @@ feet can plant near the top and are held in place over the ground (their height 
 most ``max_offset`` away, until they speed up.
 Only the hip, knee and ankle rotations of a leg change: the skeleton, the root and the other
 joints stay as SMRM made them, and LBS of the new rotations keeps the skin on the rig.
-The state (filtered toes, anchors, offsets, which foot is planted) lives in
-``smrm.MotionState``, so a stream saved and resumed goes on exactly.
+The state (filtered toes, anchors, offsets, which foot is planted) is a ``FeetState``, kept
+with the stream's, so a stream saved and resumed goes on exactly.
 
 The defaults were chosen on validation motion, never the test split
 (``python -m training.tune_contacts``), by a rule written before the run: among the settings
@@ -42,7 +42,7 @@ import numpy as np
 
 from ._jit import kernel
 from .conventions import FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS, UP_AXIS
-from .kinematics import _PARENTS, _forward_kinematics_kernel, check_quaternion_norms
+from .kinematics import _PARENTS, _place_joint, check_quaternion_norms, forward_kinematics
 from .validation import as_float32_array
 
 _LEFT = np.eye(3)[LEFT_AXIS]     # the T-pose's left axis, about which knees flex
@@ -87,17 +87,29 @@ def check_foot_lock(foot_lock):
     return foot_lock
 
 
+class FeetState(NamedTuple):
+    """Per leg (left, right):"""
+    toe_filtered: np.ndarray     # (2, 3) float32 the target's low-passed toe positions, metres
+    toe_anchor: np.ndarray       # (2, 3) float32 where each planted toe stays over the ground
+                                 # (its height is SMRM's), metres
+    foot_offset: np.ndarray      # (2, 3) float32 the move the feet get from the lock, metres
+    feet_planted: np.ndarray     # (2,) bool
+
+
 def check_feet(state):
-    """The foot fields of a ``smrm.MotionState``, checked: finite (2, 3) toe_filtered,
-    toe_anchor, foot_offset (C-contiguous float32) and a (2,) bool feet_planted (a copy).
-    ValueError names the field."""
-    feet = [as_float32_array(getattr(state, name), f"state.{name}", (2, 3))
+    """A FeetState checked: finite (2, 3) toe_filtered, toe_anchor, foot_offset
+    (C-contiguous float32) and a (2,) bool feet_planted (a copy). ValueError names the
+    field."""
+    if not isinstance(state, FeetState):
+        raise ValueError(f"the foot lock's state must be a FeetState, got "
+                         f"{type(state).__name__}")
+    feet = [as_float32_array(getattr(state, name), f"foot_lock.{name}", (2, 3))
             for name in ("toe_filtered", "toe_anchor", "foot_offset")]
     planted = np.asarray(state.feet_planted)
     if planted.shape != (2,) or planted.dtype != bool:
-        raise ValueError(f"state.feet_planted must be a (2,) bool array, got "
+        raise ValueError(f"foot_lock.feet_planted must be a (2,) bool array, got "
                          f"{planted.dtype} {planted.shape}")
-    return (*feet, planted.copy())
+    return FeetState(*feet, planted.copy())
 
 
 def plant_feet(rotations, root, tpose_joints, state, foot_lock=FootLock()):
@@ -107,9 +119,8 @@ def plant_feet(rotations, root, tpose_joints, state, foot_lock=FootLock()):
         rotations: (J, 4) float32 SMRM's local quaternions (w, x, y, z).
         root: (3,) float32 pelvis position, metres.
         tpose_joints: (J, 3) float32 the target's T-pose skeleton, metres.
-        state: smrm.MotionState after SMRM's step of this frame (``frames_seen`` >= 1).
-        foot_lock: FootLock, or None to plant nothing (the toes are still tracked and a
-            planted foot eases back, so it can be switched on or off mid-stream).
+        state: FeetState after the last frame, or None at a stream's start.
+        foot_lock: FootLock.
     Returns:
         the (J, 4) float32 rotations with the legs bent to the anchors, and the new state.
     """
@@ -118,14 +129,25 @@ def plant_feet(rotations, root, tpose_joints, state, foot_lock=FootLock()):
     root = as_float32_array(root, "root", (3,))
     tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
     foot_lock = check_foot_lock(foot_lock)
-    if state.frames_seen < 1:
-        raise ValueError("plant_feet runs after SMRM's step: state.frames_seen must be >= 1")
-    enabled = foot_lock is not None
-    rotations, filtered, anchor, offset, planted = _plant_feet_kernel(
-        rotations, root, tpose_joints, _PARENTS, LEGS, *check_feet(state),
-        state.frames_seen == 1, enabled, *(foot_lock if enabled else FootLock()))
-    return rotations, state._replace(toe_filtered=filtered, toe_anchor=anchor,
-                                     foot_offset=offset, feet_planted=planted)
+    if foot_lock is None:
+        raise ValueError("plant_feet needs a FootLock")
+    if state is not None:
+        state = check_feet(state)
+    joints, global_rotations = forward_kinematics(rotations, root, tpose_joints)
+    return plant_checked(rotations, joints, global_rotations, tpose_joints, state, foot_lock)
+
+
+def plant_checked(rotations, joints, global_rotations, tpose_joints, state, foot_lock):
+    """``plant_feet`` on checked inputs and the pose's FK (``joints`` (J, 3) and
+    ``global_rotations`` (J, 3, 3), float32), which it updates in place for the legs it
+    bends: the pipeline's foot-lock stage, after FK."""
+    first = state is None
+    if first:
+        feet = np.zeros((2, 3), dtype=np.float32)
+        state = FeetState(feet, feet, feet, np.zeros(2, dtype=bool))
+    rotations, *feet = _plant_feet_kernel(rotations, joints, global_rotations, tpose_joints,
+                                          _PARENTS, LEGS, *state, first, *foot_lock)
+    return rotations, FeetState(*feet)
 
 
 # ----------------------------------------------------------------------------- quaternions
@@ -232,14 +254,13 @@ def _bend_leg(rotations, joints, global_pelvis, leg, goal):
 
 
 @kernel
-def _plant_feet_kernel(rotations, root, tpose, parents, legs, toe_filtered, toe_anchor,
-                       foot_offset, feet_planted, first, enabled, plant_speed, lift_speed,
+def _plant_feet_kernel(rotations, posed, global_rotations, tpose, parents, legs, toe_filtered,
+                       toe_anchor, foot_offset, feet_planted, first, plant_speed, lift_speed,
                        speed_cutoff, height_margin, max_offset, release_decay, anchor_follow):
-    joints32 = np.empty((1, rotations.shape[0], 3), dtype=np.float32)
-    global_rotations = np.empty((1, rotations.shape[0], 3, 3), dtype=np.float32)
-    _forward_kinematics_kernel(rotations.reshape(1, -1, 4), root.reshape(1, 3),
-                               tpose.reshape(1, -1, 3), parents, joints32, global_rotations)
-    joints = joints32[0].astype(np.float64)
+    """-> rotations, and the FeetState's four fields; ``posed`` (J, 3) and
+    ``global_rotations`` (J, 3, 3), the FK of ``rotations``, are placed again along the legs
+    it bends."""
+    joints = posed.astype(np.float64)
     toes = np.empty((2, 3))
     for side in range(2):
         toes[side] = joints[legs[side, 3]]
@@ -254,8 +275,8 @@ def _plant_feet_kernel(rotations, root, tpose, parents, legs, toe_filtered, toe_
         speed = 0.0 if first else np.sqrt(np.sum((filtered[side] - toe_filtered[side]) ** 2)) * FPS
         low = toes[side, UP_AXIS] <= toes[1 - side, UP_AXIS] + height_margin
         if planted[side]:
-            planted[side] = enabled and low and speed <= lift_speed
-        elif enabled and not first and low and speed < plant_speed:
+            planted[side] = low and speed <= lift_speed
+        elif not first and low and speed < plant_speed:
             planted[side] = True
             anchor[side] = toes[side] + offset[side]     # where the toe is shown: no jump
         if planted[side]:
@@ -272,5 +293,8 @@ def _plant_feet_kernel(rotations, root, tpose, parents, legs, toe_filtered, toe_
         if np.sqrt(np.sum(offset[side] ** 2)) > 1e-5:       # under 0.01 mm: leave the leg
             _bend_leg(out, joints, global_pelvis, legs[side],
                       joints[legs[side, 2]] + offset[side])
+            local = np.empty((3, 3), dtype=np.float32)
+            for j in legs[side]:                             # hip, knee, ankle, toe: a chain
+                _place_joint(out, tpose, parents, posed, global_rotations, j, local)
     return (out, filtered.astype(np.float32), anchor.astype(np.float32),
             offset.astype(np.float32), planted)

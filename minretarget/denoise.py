@@ -19,8 +19,8 @@ better estimate (on validation trials, in joint and acceleration error; ``traini
 scores the denoiser this way; the figures: docs/runtime_notes.md). It costs one GRU step more
 per frame, small beside SKR.
 
-Causal: only frames seen so far, one at a time; the GRU states live in
-``smrm.MotionState.denoise_hidden``. Not in the paper.
+Causal: only frames seen so far, one at a time; the GRU states and the last root are a
+``DenoiseState``. Not in the paper.
 """
 from typing import NamedTuple
 
@@ -40,13 +40,32 @@ class DenoiserWeights(NamedTuple):
     head: Dense     # (H, J*3): each joint's offset in the heading frame, metres
 
 
+class DenoiseState(NamedTuple):
+    hidden: np.ndarray          # (2, layers, H) float32 the GRU states, the skeleton's and its
+                                # mirror image's
+    previous_root: np.ndarray   # (3,) float32 the root of the joints it denoised last, metres
+
+
 def hidden_shape(weights):
     """The shape of the GRU states of DenoiserWeights ``weights``: (2, layers, H), the
-    skeleton's and its mirror image's; (2, 0, 0) for None (no denoiser), which is what a
-    stream's state then holds."""
-    if weights is None:
-        return (2, 0, 0)
+    skeleton's and its mirror image's."""
     return 2, len(weights.gru), weights.gru[0].hidden_weight.shape[0]
+
+
+def initial_state(weights, first_joints):
+    """The state before a stream whose first (smoothed) joints are ``first_joints`` (J, 3):
+    zero GRU states, and the first root as the last one (the root has not moved yet)."""
+    return DenoiseState(np.zeros(hidden_shape(weights), np.float32),
+                        np.array(first_joints[0], np.float32))
+
+
+def check_state(weights, state):
+    """A DenoiseState fitting ``weights`` (C-contiguous float32); ValueError names the field."""
+    if not isinstance(state, DenoiseState):
+        raise ValueError(f"the denoiser's state must be a DenoiseState, got "
+                         f"{type(state).__name__}")
+    return DenoiseState(as_float32_array(state.hidden, "denoiser.hidden", hidden_shape(weights)),
+                        as_float32_array(state.previous_root, "denoiser.previous_root", (3,)))
 
 
 def denoise_joints(weights, hidden, joints, previous_root):

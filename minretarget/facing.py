@@ -5,7 +5,7 @@ backwards: its skeleton turns half round about the vertical from one frame to th
 legs and arms come out crossed and the feet jump by tens of centimetres (``benchmarks/
 heading_flips.py`` counts these frames). In a stream, the way the body faced a frame ago is
 known, and a body does not turn far in a frame. So the stream keeps a reference heading h0
-(``smrm.MotionState.facing_reference``: at first the first frame's) and, per frame:
+(``FacingState.reference``: at first the first frame's) and, per frame:
     1. SKR's skeleton of the cloud (the reading) faces h1 (``heading.heading_angles``); if
        it is within ``TRIGGER`` of h0 it stands and h0 becomes h1 (nearly every frame: no
        cost);
@@ -24,16 +24,38 @@ seated trials (validation has no flips to tune on), by how many frames still fac
 fraction of the frames, and waiting before moving h0 beats moving it at once or never. The
 counts of each variant: docs/runtime_notes.md, "Facing check".
 """
+from typing import NamedTuple
+
 import numpy as np
 
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .heading import heading_angles, wrapped
-from .validation import as_float32_array, as_point_cloud
+from .validation import as_count, as_float32_array, as_point_cloud
 
 TRIGGER = np.radians(45.0)   # a reading facing further than this from the reference is read
 #                              again
 CONFIRM = 5                  # frames in a row of both readings facing away that move the
 #                              reference to the first reading's heading
+
+
+class FacingState(NamedTuple):
+    reference: float      # the heading the body is taken to face, radians (nan: none yet)
+    away_frames: int      # frames in a row whose readings both faced away from it
+
+
+def check_facing_state(state):
+    """A FacingState of a finite (or nan) reference and a count; ValueError names the field."""
+    if not isinstance(state, FacingState):
+        raise ValueError(f"the facing check's state must be a FacingState, got "
+                         f"{type(state).__name__}")
+    try:
+        reference = float(state.reference)
+    except (TypeError, ValueError):
+        raise ValueError(f"facing_check.reference must be a number (radians) or nan, got "
+                         f"{state.reference!r}") from None
+    if np.isinf(reference):
+        raise ValueError(f"facing_check.reference must be finite or nan, got {reference}")
+    return FacingState(reference, as_count(state.away_frames, "facing_check.away_frames"))
 
 
 def half_turned(points, centre):

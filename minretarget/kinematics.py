@@ -176,19 +176,28 @@ def _forward_kinematics_kernel(rotations, root, tpose, parents, joints, global_r
         _quaternion_to_matrix_one(rotations[n, 0], global_rotations[n, 0])
         joints[n, 0] = root[n]
         for j in range(1, rotations.shape[1]):
-            p = parents[j]
-            _quaternion_to_matrix_one(rotations[n, j], local)
-            parent_rotation = global_rotations[n, p]
-            for a in range(3):
-                # Bone offset from the T-pose, rotated by the parent's global rotation.
-                offset = np.float32(0.0)
-                for b in range(3):
-                    offset += parent_rotation[a, b] * (tpose[n, j, b] - tpose[n, p, b])
-                    acc = np.float32(0.0)
-                    for c in range(3):
-                        acc += parent_rotation[a, c] * local[c, b]
-                    global_rotations[n, j, a, b] = acc
-                joints[n, j, a] = joints[n, p, a] + offset
+            _place_joint(rotations[n], tpose[n], parents, joints[n], global_rotations[n], j,
+                         local)
+
+
+@kernel
+def _place_joint(rotations, tpose, parents, joints, global_rotations, j, local):
+    """One pose's joint j > 0 from its parent's, in place: its position in ``joints`` (J, 3)
+    and its world rotation in ``global_rotations`` (J, 3, 3); ``local`` (3, 3) is scratch.
+    A stage that changes a chain's rotations (the foot lock) places that chain again."""
+    p = parents[j]
+    _quaternion_to_matrix_one(rotations[j], local)
+    parent_rotation = global_rotations[p]
+    for a in range(3):
+        # Bone offset from the T-pose, rotated by the parent's global rotation.
+        offset = np.float32(0.0)
+        for b in range(3):
+            offset += parent_rotation[a, b] * (tpose[j, b] - tpose[p, b])
+            acc = np.float32(0.0)
+            for c in range(3):
+                acc += parent_rotation[a, c] * local[c, b]
+            global_rotations[j, a, b] = acc
+        joints[j, a] = joints[p, a] + offset
 
 
 def skinning_transforms(joints, global_rotations, tpose_joints):

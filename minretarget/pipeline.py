@@ -1,6 +1,7 @@
 """The per-frame pipeline, declared once: which stages run, in what order, with what settings.
 
-A source frame goes down these stages, in this order (``Retargeter._retarget_step``):
+A source frame goes down these stages, in this order (``stages.build_stages`` makes the list,
+``Retargeter`` folds each frame down it):
 
     stage            module              setting            what it does
     0  thinning      sampling            cloud_points       a seeded subset of each cloud
@@ -13,8 +14,9 @@ A source frame goes down these stages, in this order (``Retargeter._retarget_ste
     2a smoothing     smoothing           smoothing          alpha-beta filter over time
     2b denoiser      denoise             denoise            a GRU trained on SKR's skeletons
     3  SMRM          smrm (+ rest_pose)  rest_pose          rotations and root for the target
-    4  foot lock     contacts            foot_lock          planted toes held, legs bent to them
-    5  FK + LBS      kinematics, skin    (always)           the target's joints and vertices
+    4  FK            kinematics          (always)           the target's joints, once a frame
+    5  foot lock     contacts            foot_lock          planted toes held, legs bent to them
+    6  LBS           skin                (always)           the target's points, posed
 and once per target: SKR on its T-pose (``mirror_target``: and on its mirror image) and SKIN.
 
 ``PipelineConfig`` holds every setting; ``PRESETS`` names the ones that are measured and

@@ -18,7 +18,7 @@ Taking the difference, rather than the source's predicted skeleton, keeps the bi
 puts into both skeletons (the target's T-pose comes from SKR too) on both sides.
 
 The source's bone lengths are the mean over the frames seen so far of the (denoised) source
-skeleton's (``smrm.MotionState.source_bone_lengths``); SKR's lengths are noisy (several per
+skeleton's (``smrm.SMRMState.source_bone_lengths``); SKR's lengths are noisy (several per
 cent per bone: docs/runtime_notes.md), so the map is fitted on lengths with noise of that size
 added, which shrinks it towards what the noise leaves predictable. Not in the paper.
 

@@ -7,26 +7,19 @@
 """
 import os
 import threading
-import warnings
 from collections.abc import Iterable, Iterator
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .contacts import plant_feet
-from .facing import CONFIRM, TRIGGER, _check_facing
-from .fit import LOST_COST, body_model, fit_frame, start_fit
-from .heading import heading_angles
 from .conventions import MIN_POINTS, NUM_JOINTS
-from .kinematics import forward_kinematics, skinning_transforms
+from .kinematics import forward_kinematics
 from .pipeline import PipelineConfig, as_config, check_pipeline
-from .refine import refine_joints
 from .sampling import seeded_subset
-from .skin import linear_blend_skinning, skinning_weights
-from .skr import mirror_averaged, regress_joints
-from .smrm import MotionState, check_state, retarget_step
-from .validation import FitWarning, as_float32_array, as_point_cloud, as_workers, check_body
+from .skin import skinning_weights
+from .stages import (Frame, Reading, Skinning, StreamState, build_stages, check_stream_state)
+from .validation import as_float32_array, as_point_cloud, as_workers, check_body
 from .weights import Weights, load_weights
 
 
@@ -66,9 +59,8 @@ class Retargeter:
         self.weights = weights
         self.warn = bool(warn)
         self.workers = as_workers(workers)
-        self._config = None
+        self.target, self._state, self._stages = None, None, ()
         self.config = config
-        self.target = None
         self.reset()
 
     @classmethod
@@ -85,12 +77,25 @@ class Retargeter:
 
     @config.setter
     def config(self, config: PipelineConfig | str) -> None:
-        config = check_pipeline(self.weights, as_config(config))
-        if self._config is not None and self._state is not None and (
-                self._config.denoise != config.denoise and self.weights.denoise is not None):
-            raise ValueError("a stream keeps the denoiser it began with: call reset() before "
-                             "switching denoise")
-        self._config = config
+        """Mid-stream, the stages in both pipelines go on with their state; a stage switched
+        on starts at the next frame as at a stream's start."""
+        self._config = check_pipeline(self.weights, as_config(config))
+        self._build()
+
+    @property
+    def stages(self) -> tuple:
+        """The stages each frame goes down, in order (``stages.build_stages``); empty until
+        ``set_target``."""
+        return self._stages
+
+    def _build(self):
+        """The stage list for the config and target; states of stages gone are dropped."""
+        self._stages = () if self.target is None else build_stages(
+            self.weights, self._config, self.target, self._reader(self._config.mirror_source))
+        if self._state is not None:
+            names = {stage.name for stage in self._stages}
+            self._state = self._state._replace(stages={
+                name: value for name, value in self._state.stages.items() if name in names})
 
     def set_target(self, points: ArrayLike, faces: ArrayLike | None = None,
                    tpose_joints: ArrayLike | None = None,
@@ -117,7 +122,7 @@ class Retargeter:
             # No triangles is a point cloud, as the file readers give it.
             faces = faces.astype(np.int64) if len(faces) else None
         if tpose_joints is None:
-            tpose_joints = self._skr(points, self.config.mirror_target)
+            tpose_joints = self._reader(self.config.mirror_target).read(points)
         tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
         if skin_weights is None:
             skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
@@ -128,6 +133,7 @@ class Retargeter:
             check_body(points, "target points", tpose=True)
         self.target = Target(points, faces, tpose_joints, skin_weights)
         self.reset()
+        self._build()
 
     def reset(self) -> None:
         """Forget the motion seen so far (the target stays). The calling thread owns the new
@@ -135,7 +141,6 @@ class Retargeter:
         mix two motions into one; another thread's frame is refused (``_check_owner``) until
         it calls ``reset`` (or ``set_target``) itself."""
         self._state = None
-        self.fit_state = None
         self._owner = threading.get_ident()
 
     def _check_owner(self):
@@ -146,76 +151,80 @@ class Retargeter:
                                "that last called reset, set_target or set its state); use one "
                                "Retargeter per thread, or call reset() in this one first")
 
+    def _require_target(self, method):
+        if self.target is None:
+            raise RuntimeError(f"call set_target before {method}")
+
     def warm_up(self, skeleton: bool = False) -> None:
         """Compile every kernel that a stream of clouds (``skeleton``: of joints) uses with
         this retargeter's settings, or load them from numba's on-disk cache, by retargeting
         two frames of the target's own points (about 1,000 of them; or its T-pose joints);
         then restart the stream. Takes milliseconds with a warm cache, about 30 s with a cold
         one: call it before timing or showing progress."""
-        if self.target is None:
-            raise RuntimeError("call set_target before warm_up")
-        points = np.ascontiguousarray(                                          # (~1024, 3)
+        self._require_target("warm_up")
+        points = None if skeleton else np.ascontiguousarray(                  # (~1024, 3)
             self.target.points[::max(1, len(self.target.points) // 1024)])
+        joints = self.target.tpose_joints if skeleton else None
         for _ in range(2):
-            joints = self.target.tpose_joints if skeleton else self._skr(points,
-                                                                         self.config.mirror_source)
-            self._step_joints(joints, None if skeleton else points)
+            self._step(points, joints)
         self.reset()
 
     @property
-    def state(self) -> MotionState | None:
-        """The recurrent state after the frames seen so far (``smrm.MotionState``), or None
-        at a stream's start. Save it to continue the stream later in another process: set
-        it back, on a retargeter with the same weights and target, and the next frames come
-        out exactly as if the stream had never stopped. With ``fit_source`` on, the fit's
-        state is apart (``fit_state``, a ``fit.FitState`` held in memory, not in checkpoint
-        files yet): set it back too; setting ``state`` to None forgets it as well."""
+    def state(self) -> StreamState | None:
+        """What the stream carries after the frames seen so far (``stages.StreamState``: the
+        count, and each stage's own state by its name), or None at a stream's start. Save it
+        to continue the stream later (``stages.stream_arrays`` makes plain arrays of it): set
+        it back, on a retargeter with the same weights, config and target, and the next
+        frames come out exactly as if the stream had never stopped."""
         return self._state
 
     @state.setter
-    def state(self, state: MotionState | None) -> None:
-        self._state = None if state is None else check_state(self.weights.smrm, state,
-                                                             self.denoiser)
+    def state(self, state: StreamState | None) -> None:
+        self._state = None if state is None else check_stream_state(self._stages, state)
         self._owner = threading.get_ident()
-        if state is None:
-            self.fit_state = None
-
-    @property
-    def denoiser(self):
-        """The weights' denoiser if ``denoise`` is on and they have one, else None."""
-        return self.weights.denoise if self.config.denoise else None
-
-    @property
-    def rest_pose_model(self):
-        """The weights' rest-pose model if ``rest_pose`` is on and they have one, else None."""
-        return self.weights.rest_pose if self.config.rest_pose else None
 
     def step(self, points: ArrayLike) -> RetargetedFrame:
         """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
-        if self.target is None:
-            raise RuntimeError("call set_target before step")
+        self._require_target("step")
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
-        points = self._thinned(points, self._frame())
-        return self._step_joints(self._skr(points, self.config.mirror_source), points)
+        return self._step(points, None)
 
     def step_skeleton(self, source_joints: ArrayLike,
                       points: ArrayLike | None = None) -> RetargetedFrame:
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
         SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``).
         ``points``: the (P, 3) cloud the skeleton was found in (``skeleton``), if any: the
-        facing check then runs SKR on it again, half turned, when the skeleton faces away;
-        without it every skeleton stands as given."""
-        if self.target is None:
-            raise RuntimeError("call set_target before step_skeleton")
+        facing check then runs SKR on it again, half turned, when the skeleton faces away,
+        and the source fit tracks its body in it; without it every skeleton stands as given."""
+        self._require_target("step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
         if points is not None:
-            points = self._thinned(as_point_cloud(points, "source points", MIN_POINTS),
-                                   self._frame())
+            points = as_point_cloud(points, "source points", MIN_POINTS)
         if self.warn and self._state is None:
             check_body(source_joints, "source joints, frame 0")
-        return self._step_joints(source_joints, points)
+        return self._step(points, source_joints)
+
+    def _step(self, points, joints):
+        """One checked frame down every stage -> RetargetedFrame."""
+        frame = self._fold(Frame(self._frame(), points, joints), self._stages)
+        # A copy: a stage's state may hold the joints, which must not change if the caller
+        # edits the frame's.
+        return RetargetedFrame(frame.vertices, frame.posed_joints, frame.rotations,
+                               frame.root, frame.joints.copy())
+
+    def _fold(self, frame, stages):
+        """``frame`` down ``stages``, each with its state; the stream's state moves on."""
+        self._check_owner()
+        before = {} if self._state is None else self._state.stages
+        after = {}
+        for stage in stages:
+            state, frame = stage.step(before.get(stage.name), frame)
+            if state is not None:
+                after[stage.name] = state
+        self._state = StreamState(frame.index + 1, after)
+        return frame
 
     def _frame(self):
         """The index in the stream of the frame about to be retargeted."""
@@ -226,17 +235,10 @@ class Retargeter:
         count = self.config.cloud_points
         return points if count is None else seeded_subset(points, count, frame)
 
-    def _step_joints(self, source_joints, points=None):
-        rotations, root = self._retarget_step(source_joints, points)
-        vertices, joints = self.pose(rotations, root)
-        # A copy: the state's own array must not change if the caller edits the frame's.
-        return RetargetedFrame(vertices, joints, rotations, root,
-                               self._state.previous_joints.copy())
-
     def skeleton(self, points: ArrayLike) -> np.ndarray:
         """The source skeleton(s) SKR finds, cloud by cloud: mirror-averaged if
         ``mirror_source``, refined if ``refine``; what ``step`` reads before the facing check,
-        smoothing and denoising.
+        the source fit, smoothing and denoising.
 
         Args:
             points: (P, 3) or (T, P, 3) float32 source clouds, metres; with the config's
@@ -251,72 +253,23 @@ class Retargeter:
                              f"and P >= {MIN_POINTS}, got {points.shape}")
         if points.ndim == 3:
             points = np.stack([self._thinned(cloud, t) for t, cloud in enumerate(points)])
-        return self._skr(self._thinned(points, 0) if points.ndim == 2 else points,
-                         self.config.mirror_source)
+        return self._reader(self.config.mirror_source).read(
+            self._thinned(points, 0) if points.ndim == 2 else points)
 
-    def _skr(self, points, mirrored):
-        """The skeletons of (P, 3) or (B, P, 3) clouds: SKR, then the refiner (if the weights
-        have one and ``refine`` is on); with ``mirrored``, that on each cloud and on its
-        mirror image, averaged (``skr.mirror_averaged``)."""
-        def skeleton(clouds):
-            joints = regress_joints(clouds, self.weights.skr, self.workers)
-            if self.config.refine and self.weights.refine is not None:
-                joints = refine_joints(clouds, joints, self.weights.refine,
-                                       self.weights.config.refine_neighbours)
-            return joints
-        return mirror_averaged(skeleton, points) if mirrored else skeleton(points)
-
-    def _retarget_step(self, source_joints, points=None):
-        """The facing check (given the frame's ``points``), smoothing, denoising, SMRM then
-        the foot contacts on one frame's source skeleton -> rotations, root."""
-        self._check_owner()
-        if self.config.facing_check and points is not None:
-            reference, away = ((np.nan, 0) if self._state is None else
-                               (self._state.facing_reference, self._state.facing_away_frames))
-            # step and step_skeleton have checked the joints and the cloud already
-            source_joints, reference, away = _check_facing(
-                source_joints, points, reference, away,
-                lambda clouds: self._skr(clouds, self.config.mirror_source), TRIGGER, CONFIRM)
-        else:      # tracked all the same, so that the check can be switched on mid-stream
-            reference, away = float(heading_angles(source_joints)), 0
-        if self.config.fit_source is not None and points is not None:
-            source_joints = self._fit(points, source_joints)
-        rotations, root, state = retarget_step(self.weights.smrm, self._state, source_joints,
-                                               self.target.tpose_joints, self.config.smoothing,
-                                               self.denoiser, self.rest_pose_model)
-        self._state = state._replace(facing_reference=reference, facing_away_frames=away)
-        rotations, self._state = plant_feet(rotations, root, self.target.tpose_joints,
-                                            self._state, self.config.foot_lock)
-        return rotations, root
-
-    def _fit(self, points, reading):
-        """The source fit on one cloud and its reading -> the fitted joints (J, 3) float32."""
-        if self.fit_state is None:
-            self.fit_state, joints = start_fit(body_model(), self.config.fit_source, points,
-                                               reading)
-        else:
-            self.fit_state, joints, _ = fit_frame(body_model(), self.config.fit_source,
-                                                  self.fit_state, points, reading)
-        if self.fit_state.cost > LOST_COST:
-            warnings.warn(f"frame {self.fit_state.frames - 1}: the source fit found no body "
-                          f"in this cloud (mean distance {100 * self.fit_state.cost:.1f} cm); "
-                          "it holds the last frame's pose until the body is back",
-                          FitWarning, stacklevel=4)
-        return joints.astype(np.float32)
+    def _reader(self, mirrored):
+        """SKR's stage (``stages.Reading``) with the config's refiner, ``mirrored`` or not."""
+        return Reading(self.weights, self.config.refine, mirrored, self.workers)
 
     def pose(self, rotations: ArrayLike, root: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
-        vertices and (J, 3) joints, exactly as ``step`` does after SMRM and the foot
-        contacts; or T frames at once: (T, J, 4) and (T, 3) -> (T, V, 3) and (T, J, 3)."""
-        if self.target is None:
-            raise RuntimeError("call set_target before pose")
-        target = self.target
+        vertices and (J, 3) joints, as ``step``'s last stages do after the foot lock; or T
+        frames at once: (T, J, 4) and (T, 3) -> (T, V, 3) and (T, J, 3)."""
+        self._require_target("pose")
         frames = (None,) if np.ndim(rotations) > 2 else ()                 # (T,) or one frame
         rotations = as_float32_array(rotations, "rotations", frames + (NUM_JOINTS, 4))
         root = as_float32_array(root, "root", rotations.shape[:-2] + (3,))
-        joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
-        transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
-        return linear_blend_skinning(target.points, target.skin_weights, transforms), joints
+        joints, global_rotations = forward_kinematics(rotations, root, self.target.tpose_joints)
+        return Skinning(self.target).skin(joints, global_rotations), joints
 
     def retarget_sequence(self, frames: ArrayLike) -> RetargetedFrame:
         """Retarget a whole recorded sequence at once (offline): the same result as ``run``,
@@ -333,8 +286,7 @@ class Retargeter:
             RetargetedFrame whose fields have a leading T axis: vertices (T, V, 3), joints
             (T, J, 3), rotations (T, J, 4), root (T, 3), source_joints (T, J, 3).
         """
-        if self.target is None:
-            raise RuntimeError("call set_target before retarget_sequence")
+        self._require_target("retarget_sequence")
         frames = as_float32_array(frames, "source frames", (None, None, 3))
         if len(frames) == 0 or frames.shape[1] < MIN_POINTS:
             raise ValueError(f"source frames must hold at least one frame of at least "
@@ -342,15 +294,19 @@ class Retargeter:
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
-        frames = np.stack([self._thinned(cloud, t) for t, cloud in enumerate(frames)])
-        source_joints = self._skr(frames, self.config.mirror_source)
-        rotations = np.empty((len(frames), NUM_JOINTS, 4), dtype=np.float32)
-        root = np.empty((len(frames), 3), dtype=np.float32)
-        for t, joints in enumerate(source_joints):
-            rotations[t], root[t] = self._retarget_step(joints, frames[t])
-            source_joints[t] = self._state.previous_joints
-        vertices, joints = self.pose(rotations, root)
-        return RetargetedFrame(vertices, joints, rotations, root, source_joints)
+        # SKR on every cloud first (it is stateless: one call, ``workers`` threads), then
+        # every other stage frame by frame but the skinning, then the skinning of all frames
+        # at once (LBS blends many frames per matrix product).
+        readings = self.skeleton(frames)
+        stages = self._stages[:-1]
+        out = [self._fold(Frame(t, self._thinned(cloud, t), readings[t]), stages)
+               for t, cloud in enumerate(frames)]
+        stacked = {name: np.stack([getattr(frame, name) for frame in out])
+                   for name in ("posed_joints", "global_rotations", "rotations", "root",
+                                "joints")}
+        vertices = self._stages[-1].skin(stacked["posed_joints"], stacked["global_rotations"])
+        return RetargetedFrame(vertices, stacked["posed_joints"], stacked["rotations"],
+                               stacked["root"], stacked["joints"])
 
     def run(self, frames: Iterable[ArrayLike]) -> Iterator[RetargetedFrame]:
         """Retarget an iterable of (P, 3) source frames lazily, one RetargetedFrame each.

@@ -13,7 +13,7 @@ Because it predicts with the velocity, a joint moving steadily is followed with 
 plain exponential filter, or a One-Euro filter, lags by v (1 - a) / (a fps)), so it can smooth
 harder for the same lag. The defaults are near Benedict and Bordner's relation
 beta = alpha^2 / (2 - alpha) (0.38 for alpha = 0.7). Causal and one frame at a time: the
-state (y, v) lives in ``smrm.MotionState``.
+state (y, v) is a ``SmoothingState``.
 
 The defaults were chosen on validation trials (held-out subjects on held-out bodies): the
 least Acc error among a grid of gains whose target PA-MPJPE is no worse than the One-Euro
@@ -51,6 +51,21 @@ def check_smoothing(smoothing):
         raise ValueError(f"smoothing: need 0 < position_gain <= 1 and 0 <= velocity_gain <= "
                          f"position_gain, got {smoothing}")
     return smoothing
+
+
+class SmoothingState(NamedTuple):
+    joints: np.ndarray      # (J, 3) float32 the filter's last output y, metres
+    velocity: np.ndarray    # (J, 3) float32 its velocity estimate v, m/s
+
+
+def check_smoothing_state(state):
+    """A SmoothingState of finite (J, 3) arrays (C-contiguous float32); ValueError names the
+    field."""
+    if not isinstance(state, SmoothingState):
+        raise ValueError(f"the smoothing's state must be a SmoothingState, got "
+                         f"{type(state).__name__}")
+    return SmoothingState(*(as_float32_array(value, f"smoothing.{name}", (NUM_JOINTS, 3))
+                            for name, value in state._asdict().items()))
 
 
 def smooth_joints(joints, previous, velocity, smoothing=Smoothing()):

@@ -1,8 +1,7 @@
 """Stage 2, SMRM: skeletal motion retargeting, one frame at a time with explicit GRU state.
 
-Per frame, with source joints x_t (J, 3) and the target's T-pose skeleton s (J, 3):
-    0. x_t smoothed over time (``minretarget.smoothing``, when asked), then
-    0'. denoised (``minretarget.denoise``, when asked): SMRM sees the result
+Per frame, with source joints x_t (J, 3) (the stages before it: smoothed, denoised, fitted,
+as the pipeline says) and the target's T-pose skeleton s (J, 3):
     1. heading H_t: the turn about +Y from +Z to the way the source faces (hips and shoulders);
        the network sees and predicts everything in this body-aligned frame
     2. features: H_t^T (x_t - x_t[0]) (J*3) and the root velocity H_t^T (x_t[0] - x_{t-1}[0])
@@ -28,18 +27,15 @@ import numpy as np
 
 from ._jit import kernel
 from .analytic import _analytic_frame
-from .contacts import check_feet
 from .kinematics import _quaternion_multiply_one
 from .conventions import NUM_JOINTS
-from .denoise import DenoiserWeights, _denoise_mirror_averaged_kernel, hidden_shape
 from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
 # and must still unpickle (to be found stale) rather than fail the import.
 from .nn import Dense, GRULayer, dense, gru_step  # noqa: F401
 from .rest_pose import (NUM_BONES, _bone_lengths_kernel, _prior_reference_kernel,
                         check_rest_pose)
-from .smoothing import _parameters, _smooth_kernel, check_smoothing
-from .validation import as_float32_array
+from .validation import as_count, as_float32_array
 
 
 class SMRMWeights(NamedTuple):
@@ -52,146 +48,79 @@ class SMRMWeights(NamedTuple):
     analytic_prior: bool = False
 
 
-class MotionState(NamedTuple):
-    """Everything SMRM (and the smoothing and denoising before it) carries from one frame to
-    the next."""
-    encoder_hidden: np.ndarray   # (layers, H) float32
-    decoder_hidden: np.ndarray   # (layers, H) float32
-    previous_joints: np.ndarray  # (J, 3) float32 the source joints SMRM saw last frame, metres
-    smoothed_joints: np.ndarray  # (J, 3) float32 the smoothing's last output, metres (the
-                                 # same as previous_joints with no denoiser)
-    joint_velocity: np.ndarray   # (J, 3) float32 its velocity estimate (smoothing), m/s
-    denoise_hidden: np.ndarray   # (2, layers, H) float32 the denoiser's GRUs (the skeleton's
-                                 # and its mirror image's); (2, 0, 0) without one
+class SMRMState(NamedTuple):
+    """What SMRM carries from one frame to the next."""
+    encoder_hidden: np.ndarray       # (layers, H) float32
+    decoder_hidden: np.ndarray       # (layers, H) float32
+    previous_root: np.ndarray        # (3,) float32 the root of the source joints it saw last
     source_bone_lengths: np.ndarray  # (B,) float32 mean source bone lengths over the frames
                                      # seen, metres (``rest_pose.bone_lengths``'s order)
     frames_seen: int
-    # Foot contacts (``minretarget.contacts``), per leg (left, right):
-    toe_filtered: np.ndarray     # (2, 3) float32 the target's low-passed toe positions, metres
-    toe_anchor: np.ndarray       # (2, 3) float32 where each planted toe stays over the ground
-                                 # (its height is SMRM's), metres
-    foot_offset: np.ndarray      # (2, 3) float32 the move the feet get from the lock, metres
-    feet_planted: np.ndarray     # (2,) bool
-    # The facing check (``minretarget.facing``), kept by ``Retargeter``: the heading the body
-    # is taken to face (radians; nan: none yet) and for how many frames in a row the readings
-    # have faced away from it.
-    facing_reference: float = float("nan")
-    facing_away_frames: int = 0
 
 
-def initial_state(weights, first_joints, denoiser=None):
+def initial_state(weights, first_joints):
     """The state before a stream whose first source frame has joints ``first_joints`` (J, 3),
-    for SMRMWeights ``weights`` and DenoiserWeights ``denoiser`` (or None)."""
+    for SMRMWeights ``weights``: zero GRU states and bone lengths, the first root."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
     zeros = np.zeros((layers, hidden), dtype=np.float32)
-    first_joints = np.array(first_joints, dtype=np.float32)
-    feet = np.zeros((2, 3), dtype=np.float32)
-    return MotionState(zeros, zeros.copy(), first_joints, first_joints.copy(),
-                       np.zeros_like(first_joints),
-                       np.zeros(hidden_shape(denoiser), dtype=np.float32),
-                       np.zeros(NUM_BONES, dtype=np.float32), 0,
-                       feet, feet.copy(), feet.copy(), np.zeros(2, dtype=bool))
+    return SMRMState(zeros, zeros.copy(), np.array(first_joints[0], dtype=np.float32),
+                     np.zeros(NUM_BONES, dtype=np.float32), 0)
 
 
-def check_state(weights, state, denoiser=None):
-    """A MotionState checked against ``weights`` and ``denoiser`` (e.g. one read back from a
-    file): hidden states of the right shapes, finite (J, 3) joints and velocities, a count,
-    finite (B,) bone lengths >= 0, finite (2, 3) foot-contact arrays and (2,) bool planted flags,
-    a facing reference (a number, nan allowed) and a count of frames facing away.
+def check_state(weights, state):
+    """An SMRMState checked against ``weights`` (e.g. one read back from a file): hidden
+    states of the right shapes, a finite (3,) root, finite (B,) bone lengths >= 0, a count.
     Returns it with C-contiguous float32 arrays; ValueError names the field."""
     layers, hidden = len(weights.encoder), weights.encoder[0].hidden_weight.shape[0]
-    if not isinstance(state, MotionState):
-        raise ValueError(f"state must be a MotionState, got {type(state).__name__}")
-    encoder = as_float32_array(state.encoder_hidden, "state.encoder_hidden", (layers, hidden))
-    decoder = as_float32_array(state.decoder_hidden, "state.decoder_hidden", (layers, hidden))
-    joints = [as_float32_array(getattr(state, name), f"state.{name}", (NUM_JOINTS, 3))
-              for name in ("previous_joints", "smoothed_joints", "joint_velocity")]
-    denoise = as_float32_array(state.denoise_hidden, "state.denoise_hidden",
-                               hidden_shape(denoiser))
-    lengths = as_float32_array(state.source_bone_lengths, "state.source_bone_lengths",
+    if not isinstance(state, SMRMState):
+        raise ValueError(f"SMRM's state must be an SMRMState, got {type(state).__name__}")
+    encoder = as_float32_array(state.encoder_hidden, "smrm.encoder_hidden", (layers, hidden))
+    decoder = as_float32_array(state.decoder_hidden, "smrm.decoder_hidden", (layers, hidden))
+    root = as_float32_array(state.previous_root, "smrm.previous_root", (3,))
+    lengths = as_float32_array(state.source_bone_lengths, "smrm.source_bone_lengths",
                                (NUM_BONES,))
     if not (lengths >= 0).all():
-        raise ValueError(f"state.source_bone_lengths must be >= 0, got {lengths.min()} at "
+        raise ValueError(f"smrm.source_bone_lengths must be >= 0, got {lengths.min()} at "
                          f"bone {int(lengths.argmin())}")
-    frames, away = (_count(state, name) for name in ("frames_seen", "facing_away_frames"))
-    try:
-        reference = float(state.facing_reference)
-    except (TypeError, ValueError):
-        raise ValueError(f"state: facing_reference must be a number (radians) or nan, got "
-                         f"{state.facing_reference!r}") from None
-    if np.isinf(reference):
-        raise ValueError(f"state: facing_reference must be finite or nan, got {reference}")
-    return MotionState(encoder, decoder, *joints, denoise, lengths, frames, *check_feet(state),
-                       reference, away)
+    return SMRMState(encoder, decoder, root, lengths, as_count(state.frames_seen,
+                                                               "smrm.frames_seen"))
 
 
-def _count(state, name):
-    """The field ``name`` of ``state`` as an int >= 0, or ValueError naming it."""
-    value = getattr(state, name)
-    try:
-        count = int(value)
-    except (TypeError, ValueError, OverflowError):                  # None, "x", inf
-        count = -1
-    if count < 0 or count != value:
-        raise ValueError(f"state: {name} must be a count, got {value!r}")
-    return count
-
-
-def retarget_step(weights, state, source_joints, target_tpose, smoothing=None, denoiser=None,
-                  rest_pose=None):
+def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None):
     """Retarget one frame.
 
     Args:
         weights: SMRMWeights.
-        state: MotionState after the previous frame, or None for a stream's first frame.
+        state: SMRMState after the previous frame, or None for a stream's first frame.
         source_joints: (J, 3) float32 source joint positions, metres.
         target_tpose: (J, 3) float32 target T-pose joints, metres.
-        smoothing: ``smoothing.Smoothing`` to smooth the source joints over time first, or
-            None to use them as they are (what the torch reference does).
-        denoiser: ``denoise.DenoiserWeights`` to denoise them next (step 0'), or None (the
-            paper's pipeline); a state from a stream with another shape of denoiser (or none)
-            is refused.
         rest_pose: ``rest_pose.RestPoseWeights`` for the prior to allow for the two bodies'
             rest poses (step 4), or None (the plain analytic prior).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
-        and the new MotionState (its ``previous_joints``: the source joints SMRM saw).
+        and the new SMRMState.
     """
     source_joints = as_float32_array(source_joints, "source_joints", (NUM_JOINTS, 3))
     target_tpose = as_float32_array(target_tpose, "target_tpose", (NUM_JOINTS, 3))
-    smoothing = check_smoothing(smoothing)
-    if denoiser is not None and not isinstance(denoiser, DenoiserWeights):
-        raise ValueError(f"denoiser must be DenoiserWeights or None, got "
-                         f"{type(denoiser).__name__}")
-    if rest_pose is not None:
-        rest_pose = check_rest_pose(rest_pose)
+    if state is not None:
+        state = check_state(weights, state)
+    rest = _NO_REST_POSE if rest_pose is None else check_rest_pose(rest_pose).directions
+    return step_checked(weights, state, source_joints, target_tpose, rest)
+
+
+def step_checked(weights, state, source_joints, target_tpose, rest_directions):
+    """``retarget_step`` on checked inputs (``rest_directions``: RestPoseWeights.directions
+    or ``_NO_REST_POSE``): the pipeline's SMRM stage."""
     if state is None:
-        state = initial_state(weights, source_joints, denoiser)
-    if state.denoise_hidden.shape != hidden_shape(denoiser):
-        raise ValueError(f"the stream's denoiser state has shape {state.denoise_hidden.shape}"
-                         f", this denoiser needs {hidden_shape(denoiser)}: reset the stream "
-                         f"to change denoisers")
-    smoothed, velocity = _smooth_kernel(source_joints, state.smoothed_joints,
-                                        state.joint_velocity, *_parameters(smoothing))
-    seen, denoise_hidden = smoothed, state.denoise_hidden
-    if denoiser is not None:
-        denoise_hidden = denoise_hidden.copy()
-        seen = _denoise_mirror_averaged_kernel(denoiser, smoothed, state.smoothed_joints[0],
-                                               denoise_hidden)
+        state = initial_state(weights, source_joints)
     encoder_hidden = state.encoder_hidden.copy()
     decoder_hidden = state.decoder_hidden.copy()
-    # At a stream's start the root has not moved: its previous place is its own (denoised).
-    previous_root = seen[0] if state.frames_seen == 0 else state.previous_joints[0]
     lengths = state.source_bone_lengths.copy()
-    rest_directions = _NO_REST_POSE if rest_pose is None else rest_pose.directions
     rotations, root = _retarget_step_kernel(
-        weights, seen, target_tpose, rest_directions, encoder_hidden, decoder_hidden,
-        previous_root, lengths, state.frames_seen)
-    new_state = state._replace(encoder_hidden=encoder_hidden, decoder_hidden=decoder_hidden,
-                               previous_joints=seen, smoothed_joints=smoothed,
-                               joint_velocity=velocity, denoise_hidden=denoise_hidden,
-                               source_bone_lengths=lengths, frames_seen=state.frames_seen + 1)
-    return rotations, root, new_state
+        weights, source_joints, target_tpose, rest_directions, encoder_hidden, decoder_hidden,
+        state.previous_root, lengths, state.frames_seen)
+    return rotations, root, SMRMState(encoder_hidden, decoder_hidden, source_joints[0].copy(),
+                                      lengths, state.frames_seen + 1)
 
 
 # The bones (rest_pose.bone_lengths' order) of the hip-knee-ankle chains, left then right

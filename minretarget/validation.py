@@ -49,6 +49,17 @@ def as_float32_array(value, name, shape, finite=True):
 MAX_COORDINATE = 1e4
 
 
+def as_count(value, name):
+    """``value`` as an int >= 0 (a count kept in a stream's state), or ValueError naming it."""
+    try:
+        count = int(value)
+    except (TypeError, ValueError, OverflowError):                  # None, "x", inf
+        count = -1
+    if count < 0 or count != value:
+        raise ValueError(f"{name} must be a count (an integer >= 0), got {value!r}")
+    return count
+
+
 def as_point_cloud(value, name, min_points):
     """(P, 3) points, metres -> float32 C-contiguous array, refusing clouds under
     ``min_points`` and coordinates beyond ``MAX_COORDINATE``."""

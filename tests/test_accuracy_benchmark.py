@@ -315,14 +315,14 @@ def test_the_analytic_row_is_the_model_with_smrms_networks_turned_to_identity(ti
                         np.zeros_like(heads.root_head.bias))))
     retargeter = Retargeter(weights, warn=False)
     foot_lock = retargeter.config.foot_lock
-    assert retargeter.rest_pose_model is not None and foot_lock is not None
+    assert accuracy.rest_pose_of(retargeter) is not None and foot_lock is not None
     target_points, _, _ = tiny_stream
     retargeter.set_target(target_points)
     skeletons = standing_stream(30) * np.float32(0.9)
     frames = [retargeter.step_skeleton(joints) for joints in skeletons]
     seen = np.stack([f.source_joints for f in frames])
     joints, vertices = accuracy.analytic_full(seen, retargeter.target,
-                                              retargeter.rest_pose_model, foot_lock)
+                                              accuracy.rest_pose_of(retargeter), foot_lock)
     np.testing.assert_allclose(joints, np.stack([f.joints for f in frames]), atol=1e-4)
     np.testing.assert_allclose(vertices, np.stack([f.vertices for f in frames]), atol=1e-4)
     plain, _ = accuracy.analytic_plain(seen, retargeter.target)

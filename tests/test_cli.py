@@ -17,7 +17,7 @@ from minretarget import cli
 from minretarget.bvh import read_bvh, resample, world_transforms
 from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_NAMES, NUM_JOINTS
-from minretarget import retargeter as retargeter_module
+from minretarget import stages as stages_module
 from minretarget.formats.glb import accessor_array, read_glb
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.skeletons import depth_first_order
@@ -156,7 +156,7 @@ def test_presets_match_the_python_api(inputs, monkeypatch, base):
 def test_no_facing_check_matches_the_python_api(inputs, monkeypatch):
     """--no-facing-check. The tiny model's skeletons of the test frames never face away from
     each other, so a stand-in check that moves every skeleton shows whether the check ran."""
-    monkeypatch.setattr(retargeter_module, "_check_facing",
+    monkeypatch.setattr(stages_module, "_check_facing",
                         lambda reading, points, reference, away, skeleton, trigger, confirm:
                         (reading + 0.01, reference, away))
     option_matches_the_api(inputs, monkeypatch, ("--no-facing-check",),

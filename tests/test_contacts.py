@@ -4,11 +4,10 @@ import numpy as np
 import pytest
 import twins
 
-from minretarget.contacts import FootLock, check_foot_lock, plant_feet
+from minretarget.contacts import FeetState, FootLock, check_foot_lock, plant_feet
 from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.kinematics import forward_kinematics, quaternion_multiply
 from minretarget.retargeter import Retargeter
-from minretarget.smrm import MotionState
 from minretarget.pipeline import PipelineConfig
 
 LEG_JOINTS = [JOINT_INDEX[f"{side}_{name}"] for side in ("left", "right")
@@ -57,24 +56,19 @@ def stepping(frames=60, seed=0):
     return rotations, root.astype(np.float32)
 
 
-def run_lock(rotations, root, tpose, lock=FootLock()):
-    state = initial_state_for_feet()
+def run_lock(rotations, root, tpose, lock=FootLock(), state=None):
     out, planted = [], []
     for t in range(len(rotations)):
-        state = state._replace(frames_seen=t + 1)
         new, state = plant_feet(rotations[t], root[t], tpose, state, lock)
         out.append(new)
         planted.append(state.feet_planted)
     return np.stack(out), np.stack(planted), state
 
 
-def initial_state_for_feet():
-    """A stream's state before its first frame; the GRU's part is not used here."""
-    no_gru = np.zeros((1, 1), np.float32)
-    joints, feet = np.zeros((NUM_JOINTS, 3), np.float32), np.zeros((2, 3), np.float32)
-    return MotionState(no_gru, no_gru, joints, joints, joints, np.zeros((0, 0), np.float32),
-                       np.zeros(NUM_JOINTS - 1, np.float32), 0, feet, feet, feet,
-                       np.zeros(2, bool))
+def feet_state(**fields):
+    """A FeetState of zeros (no foot planted), with ``fields`` set."""
+    feet = np.zeros((2, 3), np.float32)
+    return FeetState(feet, feet, feet, np.zeros(2, bool))._replace(**fields)
 
 
 def toes_of(rotations, root, tpose):
@@ -171,9 +165,8 @@ def test_ik_by_hand_the_knee_flexes_forward_about_its_hinge(rest_knee):
     root = tpose[0]
     # Lifted (no foot plants: their filtered tracks were a metre off, so they move fast), the
     # left offset eases back by half.
-    state = initial_state_for_feet()._replace(
-        frames_seen=2, toe_filtered=tpose[TOES] + 1.0,
-        foot_offset=np.array([[0, 0.2, 0], [0, 0, 0]], np.float32))
+    state = feet_state(toe_filtered=tpose[TOES] + 1.0,
+                       foot_offset=np.array([[0, 0.2, 0], [0, 0, 0]], np.float32))
     out, state = plant_feet(identity, root, tpose, state, FootLock(release_decay=0.5))
     assert not state.feet_planted.any()
     joints = forward_kinematics(out, root, tpose)[0]
@@ -191,15 +184,15 @@ def test_lifting_eases_back_by_the_decay():
     out, planted, state = run_lock(rotations[:20], root[:20], tpose, lock)
     assert state.feet_planted[0] and np.linalg.norm(state.foot_offset[0]) > 1e-3
     offset = state.foot_offset[0].copy()
-    for t in range(20, 24):                   # switched off: no foot plants, offsets shrink
-        state = state._replace(frames_seen=t + 1)
-        new, state = plant_feet(rotations[t], root[t], tpose, state, None)
+    restless = FootLock(plant_speed=1e-6, lift_speed=1e-6, release_decay=0.6)  # every toe lifts
+    for t in range(20, 24):                   # no foot plants: the offsets shrink
+        new, state = plant_feet(rotations[t], root[t], tpose, state, restless)
         assert not state.feet_planted.any()
-        offset = lock.release_decay * offset
+        offset = restless.release_decay * offset
         np.testing.assert_allclose(state.foot_offset[0], offset, atol=1e-6)
-    # And once the offsets are gone, None leaves SMRM's rotations exactly as they were.
+    # And once the offsets are gone, a lifted foot leaves SMRM's rotations exactly as they were.
     state = state._replace(foot_offset=np.zeros((2, 3), np.float32))
-    new, _ = plant_feet(rotations[25], root[25], tpose, state, None)
+    new, _ = plant_feet(rotations[25], root[25], tpose, state, restless)
     np.testing.assert_array_equal(new, rotations[25])
 
 
@@ -224,7 +217,8 @@ def test_the_retargeter_plants_feet_and_resumes_exactly(tiny_weights, tiny_strea
         retargeter.set_target(target)
     plain_frames = [plain.step(points) for points in frames]
     locked_frames = [locked.step(points) for points in frames]
-    assert any(locked.state.feet_planted) or np.abs(locked.state.foot_offset).max() > 0
+    feet = locked.state.stages["foot_lock"]
+    assert any(feet.feet_planted) or np.abs(feet.foot_offset).max() > 0
     assert max(np.abs(a.rotations - b.rotations).max()
                for a, b in zip(plain_frames, locked_frames)) > 1e-4
     # Resume from the middle.
@@ -242,11 +236,12 @@ def test_the_retargeter_plants_feet_and_resumes_exactly(tiny_weights, tiny_strea
 def test_bad_state_is_refused_naming_the_field():
     tpose = human_tpose()
     rotations, root = stepping(2)
-    state = initial_state_for_feet()._replace(frames_seen=1)
-    for field, value, match in (("toe_anchor", np.zeros((3, 3)), "state.toe_anchor"),
-                                ("foot_offset", np.full((2, 3), np.nan), "state.foot_offset"),
-                                ("feet_planted", np.zeros(2), "state.feet_planted")):
-        with pytest.raises(ValueError, match=match):
+    state = feet_state()
+    for field, value in (("toe_anchor", np.zeros((3, 3))), ("foot_offset", np.full((2, 3), np.nan)),
+                         ("feet_planted", np.zeros(2))):
+        with pytest.raises(ValueError, match=f"foot_lock.{field}"):
             plant_feet(rotations[0], root[0], tpose, state._replace(**{field: value}))
-    with pytest.raises(ValueError, match="frames_seen"):
-        plant_feet(rotations[0], root[0], tpose, state._replace(frames_seen=0))
+    with pytest.raises(ValueError, match="FeetState"):
+        plant_feet(rotations[0], root[0], tpose, tuple(state))
+    with pytest.raises(ValueError, match="needs a FootLock"):
+        plant_feet(rotations[0], root[0], tpose, state, None)

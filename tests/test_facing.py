@@ -8,6 +8,7 @@ from minretarget.facing import CONFIRM, TRIGGER, check_facing, half_turned
 from minretarget.heading import heading_angles, heading_features, wrapped
 from minretarget.pipeline import PipelineConfig
 from minretarget.retargeter import Retargeter
+from minretarget.stages import Reading
 
 
 def cloud(*shape, seed=0):
@@ -90,6 +91,21 @@ def test_when_both_readings_face_away_the_reference_waits(second_heading, nearer
             assert (reference, away) == (pytest.approx(0.2 + 2.5, abs=1e-5), 0)
 
 
+class ScriptedReading(Reading):
+    """SKR's stage answering from a script: [(cloud, joints)]; each read appends its
+    ``mirrored`` flag to ``calls``."""
+    def __init__(self, answers, calls, mirrored):
+        self.answers, self.calls, self.mirrored = answers, calls, mirrored
+
+    def read(self, points):
+        self.calls.append(self.mirrored)
+
+        def one(cloud):
+            [answer] = [a for c, a in self.answers if np.allclose(c, cloud, atol=1e-6)]
+            return answer
+        return np.stack([one(c) for c in points]) if points.ndim == 3 else one(points)
+
+
 class ScriptedRetargeter(Retargeter):
     """SKR replaced by a script: ``readings`` (frame t's cloud -> facing(readings[t], seed=t))
     and ``seconds`` (frame t's cloud half turned -> facing(seconds[t] + pi, seed=100 + t),
@@ -102,13 +118,8 @@ class ScriptedRetargeter(Retargeter):
                          for t, (c, h) in enumerate(zip(clouds, seconds))]
         self.mirrored = []
 
-    def _skr(self, points, mirrored):
-        self.mirrored.append(mirrored)
-
-        def one(cloud):
-            [answer] = [a for c, a in self.answers if np.allclose(c, cloud, atol=1e-6)]
-            return answer
-        return np.stack([one(c) for c in points]) if points.ndim == 3 else one(points)
+    def _reader(self, mirrored):
+        return ScriptedReading(self.answers, self.mirrored, mirrored)
 
 
 def scripted(tiny_weights, target, frames, **options):
@@ -141,9 +152,9 @@ def test_the_reference_waits_confirm_frames_and_resumes_mid_wait(tiny_weights, t
                 if t <= CONFIRM else facing(np.pi, seed=t))
         np.testing.assert_allclose(got[t].source_joints, kept, atol=1e-5, err_msg=str(t))
         if t < CONFIRM:
-            assert (states[t].facing_reference, states[t].facing_away_frames) == (0.0, t)
-    assert states[CONFIRM].facing_away_frames == 0
-    assert abs(wrapped(states[CONFIRM].facing_reference - np.pi)) < 1e-5
+            assert tuple(states[t].stages["facing_check"]) == (0.0, t)
+    assert states[CONFIRM].stages["facing_check"].away_frames == 0
+    assert abs(wrapped(states[CONFIRM].stages["facing_check"].reference - np.pi)) < 1e-5
     assert set(retargeter.mirrored) == {mirror_source}     # the second readings' finder too
     # Resumed mid-wait on another retargeter: the same frames as the unbroken stream.
     resumed, _ = scripted(tiny_weights, target, frames, mirror_source=mirror_source)
@@ -162,11 +173,8 @@ class FlippingRetargeter(Retargeter):
         self.answers = [(clouds[0], facing(0.0)), (clouds[1], facing(np.pi, seed=1)),
                         (half_turned(clouds[1], centre), facing(np.pi + 0.2, seed=2))]
 
-    def _skr(self, points, mirrored):
-        def one(cloud):
-            [answer] = [a for c, a in self.answers if np.allclose(c, cloud, atol=1e-6)]
-            return answer
-        return np.stack([one(c) for c in points]) if points.ndim == 3 else one(points)
+    def _reader(self, mirrored):
+        return ScriptedReading(self.answers, [], mirrored)
 
 
 @pytest.mark.parametrize("facing_check", [True, False])
@@ -182,8 +190,11 @@ def test_the_retargeter_hands_smrm_the_reading_facing_nearer(tiny_weights, tiny_
     frames = [retargeter.step(cloud) for cloud in clouds]
     # No smoothing, no denoiser: SMRM sees the chosen reading itself.
     np.testing.assert_allclose(frames[1].source_joints, expected, atol=1e-6)
-    assert wrapped(retargeter.state.facing_reference - (0.2 if facing_check else np.pi)) == (
-        pytest.approx(0.0, abs=1e-5))
+    if facing_check:
+        assert wrapped(retargeter.state.stages["facing_check"].reference - 0.2) == (
+            pytest.approx(0.0, abs=1e-5))
+    else:
+        assert "facing_check" not in retargeter.state.stages
     # The same through step_skeleton with the clouds, and offline.
     retargeter.reset()
     readings = retargeter.skeleton(clouds)

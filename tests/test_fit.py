@@ -274,8 +274,9 @@ def test_retargeter_hands_smrm_the_fit_of_its_readings(sample_clouds):
     # bone lengths are the calibrated body's: constant once the calibration is over
     bones = np.linalg.norm(fitted[:, 1:] - fitted[:, list(fit.PARENTS[1:])], axis=2)
     np.testing.assert_allclose(bones[2:], np.broadcast_to(bones[2], bones[2:].shape), atol=1e-5)
+    assert retargeter.state.stages["source_fit"].frames == len(clouds)
     retargeter.reset()
-    assert retargeter.fit_state is None
+    assert retargeter.state is None
 
 
 def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
@@ -304,10 +305,13 @@ def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):
         retargeter.set_target(target)
     for points in clouds[:3]:
         first.step(points)
-    second.state, second.fit_state = first.state, first.fit_state
+    second.state = first.state
+    assert second.state.stages["source_fit"] is not first.state.stages["source_fit"]  # checked
     np.testing.assert_array_equal(second.step(clouds[3]).joints, first.step(clouds[3]).joints)
+    with pytest.raises(ValueError, match="source_fit"):
+        second.state = first.state._replace(stages={**first.state.stages,
+                                                    "source_fit": "a fit"})
     second.state = None
-    assert second.fit_state is None
     # without a cloud there is nothing to fit: the skeleton given is handed on
     given = first.skeleton(clouds[4])
     np.testing.assert_array_equal(second.step_skeleton(given).source_joints, given)

@@ -152,30 +152,35 @@ def test_denoiser_matches_twin_and_turns_with_the_body(tiny_weights):
                                twins.mirrored(denoised), atol=1e-5)
 
 
-def test_retarget_step_denoises_after_smoothing_and_before_smrm(tiny_weights):
-    """With a denoiser, a step is: smoothing, then the denoiser on the smoothed joints (its
-    previous root the smoothed one), then SMRM on the result as on clean joints."""
+def test_the_stages_smooth_then_denoise_then_retarget(tiny_weights, tiny_stream):
+    """A frame goes down the stages in order: smoothing, then the denoiser on the smoothed
+    joints (its previous root the smoothed one), then SMRM on the result as on clean joints;
+    each stage keeps its own state."""
+    from minretarget.pipeline import PipelineConfig
+    from minretarget.retargeter import Retargeter
     from minretarget.smoothing import Smoothing
     rng = np.random.default_rng(9)
-    tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
     frames = (rng.normal(0, 0.3, (1, NUM_JOINTS, 3))
               + np.cumsum(rng.normal(0, 0.02, (8, NUM_JOINTS, 3)), axis=0)).astype(np.float32)
     smoothed = twins.alpha_beta(frames, *Smoothing())
     denoised = twins.denoise(smoothed.astype(np.float32), tiny_weights.denoise)
-    state = clean = None
+    retargeter = Retargeter(tiny_weights, PipelineConfig(rest_pose=False, foot_lock=None),
+                            warn=False)
+    retargeter.set_target(tiny_stream[0])
+    assert [stage.name for stage in retargeter.stages] == [
+        "skr", "facing_check", "smoothing", "denoiser", "smrm", "fk", "lbs"]
+    tpose, clean = retargeter.target.tpose_joints, None
     for t in range(len(frames)):
-        rotations, root, state = retarget_step(tiny_weights.smrm, state, frames[t], tpose,
-                                               Smoothing(), tiny_weights.denoise)
+        frame = retargeter.step_skeleton(frames[t])
         want_rotations, want_root, clean = retarget_step(tiny_weights.smrm, clean,
                                                          denoised[t], tpose)
-        np.testing.assert_allclose(state.previous_joints, denoised[t], atol=1e-5)
-        np.testing.assert_allclose(state.smoothed_joints, smoothed[t], atol=1e-5)
-        np.testing.assert_allclose(rotations, want_rotations, atol=1e-4)
-        np.testing.assert_allclose(root, want_root, atol=1e-4)
-    with pytest.raises(ValueError, match="reset the stream"):
-        retarget_step(tiny_weights.smrm, state, frames[0], tpose)     # started with one
-    with pytest.raises(ValueError, match="DenoiserWeights"):
-        retarget_step(tiny_weights.smrm, None, frames[0], tpose, None, tiny_weights.smrm)
+        np.testing.assert_allclose(frame.source_joints, denoised[t], atol=1e-5)
+        np.testing.assert_allclose(retargeter.state.stages["smoothing"].joints, smoothed[t],
+                                   atol=1e-5)
+        np.testing.assert_allclose(frame.rotations, want_rotations, atol=1e-4)
+        np.testing.assert_allclose(frame.root, want_root, atol=1e-4)
+    assert retargeter.state.frames_seen == len(frames)
+    assert retargeter.state.stages["smrm"].frames_seen == len(frames)
 
 
 def twins_leg_length(joints):
@@ -187,8 +192,8 @@ def test_initial_state_is_zero_with_the_first_root(tiny_weights):
     joints = np.random.default_rng(6).normal(size=(NUM_JOINTS, 3)).astype(np.float32)
     state = initial_state(tiny_weights.smrm, joints)
     assert not state.encoder_hidden.any() and not state.decoder_hidden.any()
-    np.testing.assert_array_equal(state.previous_joints, joints)
-    assert not state.joint_velocity.any()
+    np.testing.assert_array_equal(state.previous_root, joints[0])
+    assert not state.source_bone_lengths.any() and state.frames_seen == 0
 
 
 def test_skinning_weights_match_twin_and_are_a_partition_of_unity(tiny_weights):

@@ -23,7 +23,11 @@ from minretarget.formats.mesh import read_points
 from minretarget.kinematics import forward_kinematics
 from minretarget.skeletons import rig_to_bvh
 from minretarget.skr import regress_joints
-from minretarget.smrm import MotionState
+from minretarget.contacts import FeetState
+from minretarget.denoise import DenoiseState
+from minretarget.facing import FacingState
+from minretarget.smoothing import SmoothingState
+from minretarget.smrm import SMRMState
 from minretarget.sources import open_source
 from minretarget.units import CANONICAL
 from minretarget.validation import as_float32_array
@@ -235,18 +239,37 @@ def test_weights_with_wrong_entries(tiny_weights, data):
         pass
 
 
+# (stage, field) of every stage state the regressed preset keeps, and the stream's count.
+STATE_FIELDS = [(None, "frames_seen")] + [
+    (stage, field) for stage, kind in (("smrm", SMRMState), ("facing_check", FacingState),
+                                       ("smoothing", SmoothingState), ("denoiser", DenoiseState),
+                                       ("foot_lock", FeetState))
+    for field in kind._fields]
+
+
 @QUICK
-@example(field="frames_seen", value=float("inf"))              # found: OverflowError
-@given(field=st.sampled_from(MotionState._fields), value=st.one_of(
+@example(stage_field=("smrm", "frames_seen"), value=float("inf"))  # found: OverflowError
+@given(stage_field=st.sampled_from(STATE_FIELDS), value=st.one_of(
     arrays(), st.integers(-5, 5), st.floats(allow_nan=True), st.none(), st.text(max_size=3)))
-def test_state_setter(retargeter, field, value):
-    retargeter.reset()
-    retargeter.step(np.random.default_rng(0).normal(size=(70, 3)))
-    state = retargeter.state._replace(**{field: value})
+def test_state_setter(retargeter, stage_field, value):
+    stage, field = stage_field
+    retargeter.config = "regressed"
     try:
-        retargeter.state = state
-    except ValueError:
-        return
-    if all(moderate(np.asarray(value, np.float64)) for value in retargeter.state):
-        frame = retargeter.step(np.random.default_rng(1).normal(size=(70, 3)))
-        assert np.isfinite(frame.vertices).all()
+        retargeter.reset()
+        retargeter.step(np.random.default_rng(0).normal(size=(70, 3)))
+        state = retargeter.state
+        if stage is None:
+            state = state._replace(frames_seen=value)
+        else:
+            state = state._replace(stages={**state.stages, stage: state.stages[stage]._replace(
+                **{field: value})})
+        try:
+            retargeter.state = state
+        except ValueError:
+            return
+        if all(moderate(np.asarray(value, np.float64))
+               for stage in retargeter.state.stages.values() for value in stage):
+            frame = retargeter.step(np.random.default_rng(1).normal(size=(70, 3)))
+            assert np.isfinite(frame.vertices).all()
+    finally:
+        retargeter.config = "default"

@@ -67,7 +67,7 @@ def test_smrm_with_the_analytic_prior_matches_torch(tmp_path, rest_pose):
                    refine=model.refine, denoise=model.denoise)
     retargeter = Retargeter.from_weights(tmp_path / "w.npz", RAW)
     assert retargeter.weights.config.smrm_analytic_prior and retargeter.weights.smrm.analytic_prior
-    assert (retargeter.rest_pose_model is not None) == rest_pose
+    assert (retargeter.weights.rest_pose is not None) == rest_pose
     target, sources = random_stream(seed=4, frames=40)
     want = reference_outputs(model, target, sources)
     retargeter.set_target(target)

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from minretarget import FitSettings, FootLock, PipelineConfig, Retargeter, Smoothing
+from minretarget.denoise import DenoiseState
+from minretarget.stages import Denoising, Frame
 from minretarget.pipeline import (DEFAULT_PRESET, LEGACY_COUPLINGS, PRESETS, UNCOUPLED,
                                   as_config, check_pipeline, preset)
 
@@ -75,20 +77,31 @@ def test_a_denoiser_refuses_skeletons_unlike_those_it_learned(tiny_weights):
                PipelineConfig(smoothing=None))
 
 
-def test_the_config_changes_between_streams_not_across_a_denoiser(tiny_weights, tiny_stream):
+def test_a_config_changed_mid_stream_keeps_the_states_of_the_stages_it_keeps(tiny_weights,
+                                                                             tiny_stream):
+    """The stages both configs run go on; a stage switched off drops its state; one switched
+    on starts as at a stream's start: switched off and on again, the denoiser restarts."""
     target, sources, _ = tiny_stream
     retargeter = Retargeter(tiny_weights, warn=False)
     retargeter.set_target(target)
     retargeter.config = "paper"
     assert retargeter.config == PRESETS["paper"]
+    assert [stage.name for stage in retargeter.stages] == ["skr", "smrm", "fk", "lbs"]
     retargeter.config = "regressed"
-    retargeter.step(sources[0])
-    retargeter.config = retargeter.config.replace(foot_lock=None)      # same denoiser: fine
-    with pytest.raises(ValueError, match="keeps the denoiser it began with"):
-        retargeter.config = retargeter.config.replace(denoise=False)
-    retargeter.reset()
+    for points in sources[:3]:
+        retargeter.step(points)
+    smrm = retargeter.state.stages["smrm"]
     retargeter.config = retargeter.config.replace(denoise=False)
-    retargeter.step(sources[0])
+    assert "denoiser" not in retargeter.state.stages
+    assert retargeter.state.stages["smrm"] is smrm
+    retargeter.config = retargeter.config.replace(denoise=True)
+    restarted = retargeter.step(sources[3])
+    smoothed = retargeter.state.stages["smoothing"].joints          # the denoiser's input
+    fresh, _ = Denoising(tiny_weights.denoise).step(None, Frame(0, None, smoothed))
+    for field in DenoiseState._fields:
+        np.testing.assert_array_equal(getattr(retargeter.state.stages["denoiser"], field),
+                                      getattr(fresh, field))
+    assert retargeter.state.frames_seen == 4 and np.isfinite(restarted.vertices).all()
 
 
 def test_thinned_clouds_are_the_same_points_whichever_call_reads_them(tiny_weights, tiny_stream):

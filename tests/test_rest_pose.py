@@ -279,5 +279,5 @@ def test_state_refuses_bad_bone_lengths(prior_weights):
         check_state(prior_weights.smrm, state._replace(
             source_bone_lengths=np.array([0.1, 0.1, -0.1] + [0.1] * (NUM_BONES - 3),
                                          np.float32)))
-    with pytest.raises(ValueError, match="state.source_bone_lengths"):
+    with pytest.raises(ValueError, match="smrm.source_bone_lengths"):
         check_state(prior_weights.smrm, state._replace(source_bone_lengths=np.zeros(3)))

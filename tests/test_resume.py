@@ -17,6 +17,7 @@ from minretarget import Retargeter, cli, outputs
 from minretarget.checkpoint import (CHECKPOINT, TRACK, Track, difference, load_checkpoint,
                                     run_record, save_checkpoint)
 from minretarget.contacts import FootLock
+from minretarget.facing import FacingState
 from minretarget.formats.mesh import read_points, write_mesh
 from minretarget.sources import open_source
 from minretarget.units import CANONICAL, make_space
@@ -167,7 +168,7 @@ def test_output_folder_policy(inputs, tmp_path, capsys):
     assert cli.main(arguments(inputs, interrupted, "--format", "npz")) == 0
     (interrupted / "result.npz").unlink()
     track = Track(interrupted / TRACK)
-    save_checkpoint(interrupted, {"version": 1}, None, 0, track)         # another run's
+    save_checkpoint(interrupted, {"version": 1}, (), None, 0, track)     # another run's
     track.close()
     assert cli.main(arguments(inputs, interrupted, "--format", "npz")) == 1
     assert "holds an interrupted run" in capsys.readouterr().err
@@ -274,7 +275,7 @@ def test_nothing_written_before_the_first_frame_fails_or_stops(inputs, tmp_path,
 
 
 def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):
-    """The Python side of resuming: a saved MotionState set on a new Retargeter."""
+    """The Python side of resuming: a saved StreamState set on a new Retargeter."""
     target, sources, _ = tiny_stream
     unbroken = Retargeter(tiny_weights, "regressed", warn=False)
     unbroken.set_target(target)
@@ -288,32 +289,53 @@ def test_resumed_api_stream_equals_an_unbroken_one(tiny_weights, tiny_stream):
     second.state = first.state
     resumed = [second.step(points).vertices for points in sources[12:20]]
     np.testing.assert_array_equal(np.stack(resumed), np.stack(expected[12:]))
-    with pytest.raises(ValueError, match="encoder_hidden must have shape"):
-        second.state = first.state._replace(encoder_hidden=np.zeros((1, 3)))
+    def with_stage(stage, **fields):
+        stages = first.state.stages
+        return first.state._replace(stages={**stages, stage: stages[stage]._replace(**fields)})
+    with pytest.raises(ValueError, match="smrm.encoder_hidden must have shape"):
+        second.state = with_stage("smrm", encoder_hidden=np.zeros((1, 3)))
     with pytest.raises(ValueError, match="frames_seen"):
         second.state = first.state._replace(frames_seen=-1)
-    for field, bad in (("facing_away_frames", -1), ("facing_away_frames", 1.5),
-                       ("facing_reference", np.inf), ("facing_reference", "x")):
-        with pytest.raises(ValueError, match=field):
-            second.state = first.state._replace(**{field: bad})
+    for field, bad in (("away_frames", -1), ("away_frames", 1.5), ("reference", np.inf),
+                       ("reference", "x")):
+        with pytest.raises(ValueError, match=f"facing_check.{field}"):
+            second.state = with_stage("facing_check", **{field: bad})
+    with pytest.raises(ValueError, match="StreamState"):
+        second.state = tuple(first.state)
 
 
-def test_a_checkpoint_keeps_the_whole_state(tiny_weights, tiny_stream, tmp_path):
-    """Every MotionState field, the facing check's included, comes back from a checkpoint."""
+@pytest.mark.parametrize("preset", ["regressed", "fitted"])
+def test_a_checkpoint_keeps_the_whole_state(tiny_weights, tiny_stream, tmp_path, preset):
+    """Every stage's state, field by field, comes back from a checkpoint; a stage's state of
+    another version is refused by name."""
     target, sources, _ = tiny_stream
-    retargeter = Retargeter(tiny_weights, "regressed", warn=False)
+    retargeter = Retargeter(tiny_weights, preset, warn=False)
     retargeter.set_target(target)
     for points in sources[:3]:
         retargeter.step(points)
-    state = retargeter.state._replace(facing_reference=1.25, facing_away_frames=3)
-    run = {"version": 8, "frames": 10, "denoise": True}     # the tiny weights' denoiser
+    state = retargeter.state
+    if preset == "regressed":
+        state = state._replace(stages={**state.stages, "facing_check": FacingState(1.25, 3)})
+    run = {"version": 9, "frames": 10}
     track = Track(tmp_path / TRACK)
-    save_checkpoint(tmp_path, run, state, 3, track)
+    save_checkpoint(tmp_path, run, retargeter.stages, state, 3, track)
     track.close()
-    frames_done, loaded = load_checkpoint(tmp_path, run, tiny_weights)
-    assert frames_done == 3 and loaded._fields == state._fields
-    for name, value in zip(state._fields, state):
-        np.testing.assert_array_equal(getattr(loaded, name), value, err_msg=name)
+    frames_done, loaded = load_checkpoint(tmp_path, run, retargeter.stages)
+    assert frames_done == 3 and set(loaded.stages) == set(state.stages)
+    for name, stage in state.stages.items():
+        for field, value in stage._asdict().items():
+            if field != "calibration":                      # clouds and grids: below
+                np.testing.assert_array_equal(getattr(loaded.stages[name], field), value,
+                                              err_msg=f"{name}.{field}")
+    if preset == "fitted":
+        for saved, back in zip(state.stages["source_fit"].calibration,
+                               loaded.stages["source_fit"].calibration):
+            np.testing.assert_array_equal(back[0], saved[0])
+    arrays = dict(np.load(tmp_path / CHECKPOINT))
+    arrays["state.smrm.version"] = np.array(0)
+    np.savez(tmp_path / CHECKPOINT, **arrays)
+    with pytest.raises(ValueError, match="smrm stage's state is of version 0"):
+        load_checkpoint(tmp_path, run, retargeter.stages)
 
 
 def resident_bytes():
@@ -353,11 +375,11 @@ def test_resume_refuses_an_option_switched_off(tiny_weights, tmp_path):
     """Options recorded only when on (refine, denoise) count when switched off too."""
     track = Track(tmp_path / TRACK)
     run = {"version": 5, "frames": 10, "denoise": True}
-    save_checkpoint(tmp_path, run, None, 0, track)
+    save_checkpoint(tmp_path, run, (), None, 0, track)
     track.close()
     with pytest.raises(ValueError, match="denoise on then, off now"):
-        load_checkpoint(tmp_path, {"version": 5, "frames": 10}, tiny_weights)
-    assert load_checkpoint(tmp_path, run, tiny_weights) == (0, None)
+        load_checkpoint(tmp_path, {"version": 5, "frames": 10}, ())
+    assert load_checkpoint(tmp_path, run, ()) == (0, None)
 
 
 def test_a_resume_refuses_a_source_file_changed_since(inputs, tmp_path, monkeypatch, capsys):
@@ -435,6 +457,6 @@ def test_a_fitted_run_resumes_to_the_same_bytes(tmp_path, stop_after):
     assert process.returncode == 130, stderr
     with np.load(out / CHECKPOINT) as checkpoint:
         done = int(checkpoint["frames_done"])
-        assert done < 24 and int(checkpoint["fit.frames"]) == done
+        assert done < 24 and int(checkpoint["state.source_fit.frames"]) == done
     assert cli.main(args + [str(out), "--resume"]) == 0
     assert files(out) == files(tmp_path / "reference")

@@ -234,11 +234,12 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
                      Retargeter(without, "regressed", warn=False))
     for retargeter in (on, off, bare):
         retargeter.set_target(target)
-    assert on.denoiser is tiny_weights.denoise and off.denoiser is None is bare.denoiser
+    assert "denoiser" in [stage.name for stage in on.stages]
+    assert "denoiser" not in [stage.name for stage in off.stages + bare.stages]
     frames, states = [], []
     for points in sources[:6]:
         frames.append((on.step(points), off.step(points), bare.step(points)))
-        states.append(on.state.smoothed_joints)
+        states.append(on.state.stages["smoothing"].joints)
     smoothed = np.stack([f.source_joints for _, f, _ in frames])
     want = denoised_stream(tiny_weights.denoise, smoothed)
     for (with_it, without_it, plain), joints in zip(frames, want):
@@ -246,8 +247,10 @@ def test_denoise_hands_smrm_the_denoised_skeleton_unless_off(tiny_weights, tiny_
         np.testing.assert_allclose(with_it.source_joints, joints, atol=1e-6)
     np.testing.assert_allclose(np.stack(states), smoothed, atol=1e-6)
     assert np.abs(with_it.vertices - without_it.vertices).max() > 1e-4
-    with pytest.raises(ValueError, match="state.denoise_hidden"):
+    with pytest.raises(ValueError, match="no denoiser state"):
         on.state = off.state
+    with pytest.raises(ValueError, match="does not run: denoiser"):
+        off.state = on.state
 
 
 WARM_UP_SCRIPT = """

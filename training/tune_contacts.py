@@ -28,7 +28,6 @@ from minretarget.kinematics import forward_kinematics
 from minretarget.metrics import acceleration_error, foot_contacts, foot_speeds, mpjpe, pa_mpjpe
 from minretarget.retargeter import Retargeter
 from minretarget.smoothing import Smoothing
-from minretarget.smrm import initial_state
 from minretarget.weights import flatten_weights, load_weights
 from minretarget.pipeline import PipelineConfig
 from training.data.datasets import validation_sequences
@@ -82,10 +81,8 @@ def score(weights, streams, foot_lock):
     speed = truth_speed = steps = 0.0
     errors, frames = np.zeros(3), 0
     for _, rotations, root, tpose, truth in streams:
-        state = initial_state(weights.smrm, tpose)      # only its foot fields are used
-        out = np.empty_like(rotations)
-        for t in range(len(rotations)):
-            state = state._replace(frames_seen=t + 1)
+        state, out = None, rotations.copy()
+        for t in range(len(rotations) if foot_lock is not None else 0):
             out[t], state = plant_feet(rotations[t], root[t], tpose, state, foot_lock)
         joints = forward_kinematics(out, root, tpose)[0]
         contacts = foot_contacts(truth, CONTACT_HEIGHT)
