@@ -52,10 +52,15 @@ def refine_joints(points, joints, weights, neighbours):
     joints = as_float32_array(joints, "joints", points.shape[:-2] + (NUM_JOINTS, 3))
     if int(neighbours) < 1:
         raise ValueError(f"neighbours must be at least 1, got {neighbours}")
+    return refine_checked(points, joints, weights, int(neighbours))
+
+
+def refine_checked(points, joints, weights, neighbours):
+    """``refine_joints`` on checked inputs (C-contiguous float32 arrays, an int >= 1)."""
     stride = -(-points.shape[-2] // MAX_POINTS)                 # ceil: at most MAX_POINTS
     clouds = points[..., ::stride, :] if points.ndim == 3 else points[None, ::stride]
     skeletons = joints if joints.ndim == 3 else joints[None]
-    k = min(int(neighbours), clouds.shape[1])
+    k = min(neighbours, clouds.shape[1])
     refined = np.empty_like(skeletons)
     for b in range(len(clouds)):
         refined[b] = _refine_kernel(np.ascontiguousarray(clouds[b]), skeletons[b], weights, k)

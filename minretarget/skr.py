@@ -50,7 +50,11 @@ def regress_joints(points, weights, workers=1):
     if points.shape[-2] < MIN_POINTS:
         raise ValueError(f"points has {points.shape[-2]} points per cloud; at least "
                          f"{MIN_POINTS} are needed")
-    workers = as_workers(workers)
+    return regress_checked(points, weights, as_workers(workers))
+
+
+def regress_checked(points, weights, workers):
+    """``regress_joints`` on checked inputs (C-contiguous float32 clouds, a worker count)."""
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
     if workers > 1 and len(batch) > 1:   # whole clouds side by side: no meeting points
         joints = list(_thread_pool(workers).map(
@@ -78,6 +82,11 @@ def mirror_averaged(skeleton, points):
     points = as_float32_array(points, "points", (..., None, 3))
     if points.ndim not in (2, 3):
         raise ValueError(f"points must have shape (P, 3) or (B, P, 3), got {points.shape}")
+    return mirror_averaged_checked(skeleton, points)
+
+
+def mirror_averaged_checked(skeleton, points):
+    """``mirror_averaged`` on checked clouds (C-contiguous float32)."""
     mirror = np.ones(3, np.float32)
     mirror[LEFT_AXIS] = -1                                      # flip the body's left axis
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)

@@ -29,11 +29,11 @@ from .fit import (LOST_COST, FitState, body_model, fit_frame, fit_state_arrays,
                   fit_state_from_arrays, start_fit)
 from .heading import heading_angles
 from .kinematics import _PARENTS, _forward_kinematics_kernel, skinning_transforms
-from .refine import refine_joints
+from .refine import refine_checked
 from .rest_pose import check_rest_pose
 from .sampling import seeded_subset
 from .skin import linear_blend_skinning
-from .skr import mirror_averaged, regress_joints
+from .skr import mirror_averaged_checked, regress_checked
 from .smoothing import SmoothingState, _parameters, _smooth_kernel, check_smoothing_state
 from .smrm import _NO_REST_POSE, SMRMState, step_checked
 from .smrm import check_state as check_smrm_state
@@ -101,14 +101,15 @@ class Reading(Stage):
         self.mirrored = mirrored
 
     def read(self, points):
-        """(P, 3) or (B, P, 3) float32 clouds -> (J, 3) or (B, J, 3) float32 joints."""
+        """(P, 3) or (B, P, 3) C-contiguous float32 clouds (checked) -> (J, 3) or (B, J, 3)
+        float32 joints."""
         def skeleton(clouds):
-            joints = regress_joints(clouds, self.weights.skr, self.workers)
+            joints = regress_checked(clouds, self.weights.skr, self.workers)
             if self.refine:
-                joints = refine_joints(clouds, joints, self.weights.refine,
-                                       self.weights.config.refine_neighbours)
+                joints = refine_checked(clouds, joints, self.weights.refine,
+                                        self.weights.config.refine_neighbours)
             return joints
-        return mirror_averaged(skeleton, points) if self.mirrored else skeleton(points)
+        return mirror_averaged_checked(skeleton, points) if self.mirrored else skeleton(points)
 
     def step(self, state, frame):
         if frame.joints is not None:
