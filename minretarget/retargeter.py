@@ -299,7 +299,7 @@ class Retargeter:
         # at once (LBS blends many frames per matrix product).
         readings = self.skeleton(frames)
         stages = self._stages[:-1]
-        out = [self._fold(Frame(t, self._thinned(cloud, t), readings[t]), stages)
+        out = [self._fold(Frame(t, cloud, readings[t]), stages)
                for t, cloud in enumerate(frames)]
         stacked = {name: np.stack([getattr(frame, name) for frame in out])
                    for name in ("posed_joints", "global_rotations", "rotations", "root",
