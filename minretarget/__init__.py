@@ -13,10 +13,12 @@ from .fit import FitSettings
 from .pipeline import PRESETS, PipelineConfig
 from .retargeter import RetargetedFrame, Retargeter, Target
 from .smoothing import Smoothing
+from .stages import StreamState
 from .validation import InputWarning, TPoseWarning, UnitsWarning, UpAxisWarning
 from .weights import load_weights, save_weights
 
-__all__ = ["Retargeter", "RetargetedFrame", "Target", "PipelineConfig", "PRESETS", "Smoothing",
+__all__ = ["Retargeter", "RetargetedFrame", "Target", "StreamState", "PipelineConfig", "PRESETS",
+           "Smoothing",
            "FootLock", "FitSettings", "load_weights",
            "save_weights", "InputWarning", "UnitsWarning", "UpAxisWarning", "TPoseWarning"]
 __version__ = "0.1.0"

@@ -219,6 +219,12 @@ def test_the_retargeter_plants_feet_and_resumes_exactly(tiny_weights, tiny_strea
     locked_frames = [locked.step(points) for points in frames]
     feet = locked.state.stages["foot_lock"]
     assert any(feet.feet_planted) or np.abs(feet.foot_offset).max() > 0
+    # FK runs once, before the lock, which places the legs it bends again: the frame's joints
+    # and vertices are those of FK and LBS on its final rotations.
+    for frame in locked_frames:
+        vertices, joints = locked.pose(frame.rotations, frame.root)
+        np.testing.assert_allclose(frame.joints, joints, atol=1e-6)
+        np.testing.assert_allclose(frame.vertices, vertices, atol=1e-6)
     assert max(np.abs(a.rotations - b.rotations).max()
                for a, b in zip(plain_frames, locked_frames)) > 1e-4
     # Resume from the middle.
