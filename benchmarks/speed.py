@@ -280,31 +280,76 @@ def onnx_times(reference, frames, threads, repeats):
 # ----------------------------------------------------------------------------- cold start
 
 COMPILE_SCRIPT = """
-import time; start = time.perf_counter()
+import json, time; start, cpu_start = time.perf_counter(), time.process_time()
+from numba.core import event
+
+kernels, stack = {{}}, []     # "module.name" -> [signatures compiled, CPU s less nested ones]
+
+
+class Compiles(event.Listener):
+    def on_start(self, ev):
+        stack.append([time.process_time(), 0.0])
+
+    def on_end(self, ev):
+        began, nested = stack.pop()
+        took = time.process_time() - began
+        if stack:
+            stack[-1][1] += took
+        function = ev.data["dispatcher"].py_func
+        entry = kernels.setdefault(f"{{function.__module__}}.{{function.__qualname__}}", [0, 0.0])
+        entry[0] += 1
+        entry[1] += took - nested
+
+
+event.register("numba:compile", Compiles())
 import numpy as np
 from minretarget.retargeter import Retargeter
 imported = time.perf_counter()
-r = Retargeter.from_weights({weights!r}, warn=False)
+r = Retargeter.from_weights({weights!r}, {preset!r}, warn=False)
 rng = np.random.default_rng(0)
 cloud = lambda n: (rng.standard_normal((n, 3)) * [0.25, 0.45, 0.12] + [0, 0.9, 0])
 r.set_target(cloud(13718).astype(np.float32)); r.step(cloud(2048).astype(np.float32))
-print(imported - start, time.perf_counter() - start)
+print(json.dumps({{"import_s": imported - start,
+                  "import_to_first_frame_s": time.perf_counter() - start,
+                  "cpu_s": time.process_time() - cpu_start, "kernels": kernels}}))
 """
 
 
-def compile_times(weights_path):
-    """Fresh processes: cold (empty numba cache) and warm (from it); import and total time
-    to the first retargeted frame (loading the weights and the first target included)."""
-    with tempfile.TemporaryDirectory() as cache:
-        environment = {**os.environ, "NUMBA_CACHE_DIR": cache}
-        out = {}
-        for label in ("cold", "warm"):
-            result = subprocess.run(
-                [sys.executable, "-c", COMPILE_SCRIPT.format(weights=weights_path)],
-                env=environment, capture_output=True, text=True, check=True)
-            imported, total = (float(v) for v in result.stdout.split())
-            out[label] = {"import_s": imported, "import_to_first_frame_s": total}
-        return out
+def first_frame(weights_path, preset, cache):
+    """One fresh process with numba's cache in ``cache``: import and total time (wall) to the
+    first retargeted frame of ``preset`` (the weights and the first target included), its CPU
+    time (steadier than the wall time on a shared machine), the load average before it, and
+    what numba compiled: signatures, and the top kernels by CPU seconds of their own compile
+    (less the kernels and numba overloads compiled inside it)."""
+    load = os.getloadavg()[0]
+    result = subprocess.run(
+        [sys.executable, "-c", COMPILE_SCRIPT.format(weights=weights_path, preset=preset)],
+        env={**os.environ, "NUMBA_CACHE_DIR": cache}, capture_output=True, text=True,
+        check=True)
+    run = json.loads(result.stdout.splitlines()[-1])
+    kernels = run.pop("kernels")
+    top = sorted(kernels.items(), key=lambda item: -item[1][1])[:15]
+    return {**run, "load_average_before": load,
+            "signatures_compiled": sum(count for count, _ in kernels.values()),
+            "top_compiles": [{"kernel": name, "signatures": count, "cpu_s": round(seconds, 3)}
+                             for name, (count, seconds) in top]}
+
+
+def compile_times(weights_path, preset="default", repeats=1):
+    """Numba's cold start (issue 40): ``repeats`` times, a fresh process with an empty cache,
+    then one from the cache it left (``first_frame`` each). "cold" and "warm" are the runs of
+    median wall time; "cold_runs" has every cold run's wall and CPU seconds and load."""
+    colds, warms = [], []
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory() as cache:
+            colds.append(first_frame(weights_path, preset, cache))
+            warms.append(first_frame(weights_path, preset, cache))
+
+    def median(runs):
+        return sorted(runs, key=lambda run: run["import_to_first_frame_s"])[len(runs) // 2]
+    return {"preset": preset, "cold": median(colds), "warm": median(warms),
+            "cold_runs": [{key: run[key] for key in ("import_to_first_frame_s", "cpu_s",
+                                                      "load_average_before")} for run in colds]}
 
 
 # ----------------------------------------------------------------------------- memory, offline

@@ -17,7 +17,9 @@ from numba.core import event
 
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
-kernel = numba.njit(cache=True, fastmath=FASTMATH, nogil=True)
+# No cfunc wrapper: it only serves a kernel passed as a first-class function value, which
+# minretarget never does, and each one is compiled and cached beside its kernel (issue 40).
+kernel = numba.njit(cache=True, fastmath=FASTMATH, nogil=True, no_cfunc_wrapper=True)
 
 
 class _First(event.Listener):

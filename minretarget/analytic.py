@@ -48,48 +48,86 @@ def analytic_rotations(source_joints, target_tpose):
 
 
 @kernel
-def _unit3(v):
-    return v / max(np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2), 1e-12)
-
-
-@kernel
 def _analytic_frame(source, tpose, out, world):
     """One frame: source (J, 3), tpose (J, 3) -> out (J, 4) local quaternions; ``world``
-    (J, 3, 3) float64 is scratch space for the world rotations."""
-    turn, quaternion = np.empty((3, 3)), np.empty(4)
+    (J, 3, 3) float64 is scratch space for the world rotations. Scalar loops throughout: no
+    BLAS products, array temporaries or slice assignments, which cost numba seconds to compile
+    (issue 40) and a 3 x 3 product nothing at run time."""
+    parent, turn, local = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    covariance, quaternion = np.empty((3, 3)), np.empty(4)
+    rest, posed = np.empty(3), np.empty(3)
     for j in range(source.shape[0]):
-        parent = np.eye(3) if j == 0 else world[_PARENTS[j]]
+        for a in range(3):
+            for b in range(3):
+                parent[a, b] = (1.0 if a == b else 0.0) if j == 0 else world[_PARENTS[j], a, b]
+                covariance[a, b] = 0.0          # sum over children of rest posed^T
         count = 0
-        cross_covariance = np.zeros((3, 3))     # sum over children of rest posed^T
         for k in range(_CHILD_TABLE.shape[1]):
             c = _CHILD_TABLE[j, k]
             if c < 0:
                 break
             count += 1
-            bone = (tpose[c] - tpose[j]).astype(np.float64)
-            rest = _unit3(parent @ bone)
-            posed = _unit3((source[c] - source[j]).astype(np.float64))
+            for a in range(3):
+                rest[a] = 0.0
+                posed[a] = np.float64(source[c, a] - source[j, a])
+            for b in range(3):
+                bone = np.float64(tpose[c, b] - tpose[j, b])
+                for a in range(3):
+                    rest[a] += parent[a, b] * bone
+            _normalise3(rest)
+            _normalise3(posed)
             for a in range(3):
                 for b in range(3):
-                    cross_covariance[a, b] += rest[a] * posed[b]
-        if count == 0:                          # a leaf keeps its parent's rotation
-            world[j] = parent
-        elif count == 1:                        # the smallest turn rest -> posed
-            cross = np.cross(rest, posed)
-            dot = rest @ posed
-            w = 1.0 + dot
+                    covariance[a, b] += rest[a] * posed[b]
+        if count == 1:                          # the smallest turn rest -> posed
+            dot = rest[0] * posed[0] + rest[1] * posed[1] + rest[2] * posed[2]
             if dot < -1 + 1e-6:                 # opposite: a half turn about a perpendicular
-                helper = np.array([1.0, 0, 0]) if abs(rest[0]) < 0.9 else np.array([0, 1.0, 0])
-                cross, w = _unit3(np.cross(rest, helper)), 0.0
-            quaternion[0], quaternion[1:] = w, cross
-        else:                                   # Kabsch: the best-aligning rotation
-            _horn_quaternion(cross_covariance, count, quaternion)
+                h0, h1 = (1.0, 0.0) if abs(rest[0]) < 0.9 else (0.0, 1.0)
+                posed[0] = -rest[2] * h1        # rest x (h0, h1, 0), made unit
+                posed[1] = rest[2] * h0
+                posed[2] = rest[0] * h1 - rest[1] * h0
+                _normalise3(posed)
+                quaternion[0] = 0.0
+                for a in range(3):
+                    quaternion[1 + a] = posed[a]
+            else:
+                quaternion[0] = 1.0 + dot
+                quaternion[1] = rest[1] * posed[2] - rest[2] * posed[1]
+                quaternion[2] = rest[2] * posed[0] - rest[0] * posed[2]
+                quaternion[3] = rest[0] * posed[1] - rest[1] * posed[0]
+        elif count > 1:                         # Kabsch: the best-aligning rotation
+            _horn_quaternion(covariance, float(count), quaternion)
         if count:
             _quaternion_to_matrix_one(quaternion, turn)
-            world[j] = turn @ parent
-        local = world[j] if j == 0 else world[_PARENTS[j]].T @ world[j]
-        _matrix_to_quaternion_one(np.ascontiguousarray(local), quaternion)
-        out[j] = quaternion
+        for a in range(3):                      # world = turn parent; a leaf keeps its parent's
+            for b in range(3):
+                if count:
+                    total = 0.0
+                    for c in range(3):
+                        total += turn[a, c] * parent[c, b]
+                    world[j, a, b] = total
+                else:
+                    world[j, a, b] = parent[a, b]
+        for a in range(3):                      # local = parent's world^T world
+            for b in range(3):
+                if j == 0:
+                    local[a, b] = world[0, a, b]
+                else:
+                    total = 0.0
+                    for c in range(3):
+                        total += world[_PARENTS[j], c, a] * world[j, c, b]
+                    local[a, b] = total
+        _matrix_to_quaternion_one(local, quaternion)
+        for a in range(4):
+            out[j, a] = quaternion[a]
+
+
+@kernel
+def _normalise3(v):
+    """A 3-vector to unit length in place (a zero one stays zero)."""
+    norm = max(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-12)
+    for a in range(3):
+        v[a] = v[a] / norm
 
 
 @kernel
@@ -98,14 +136,36 @@ def _horn_quaternion(s, count, q):
     s = sum_k rest_k posed_k^T (3, 3) over ``count`` unit pairs (Horn 1987): the top
     eigenvector of Horn's symmetric 4 x 4 matrix N. N's eigenvalues lie in [-count, count], so
     N + count I is positive semi-definite and its repeated square tends to l1 q q^T."""
-    n = np.array([
-        [s[0, 0] + s[1, 1] + s[2, 2], s[1, 2] - s[2, 1], s[2, 0] - s[0, 2], s[0, 1] - s[1, 0]],
-        [s[1, 2] - s[2, 1], s[0, 0] - s[1, 1] - s[2, 2], s[0, 1] + s[1, 0], s[2, 0] + s[0, 2]],
-        [s[2, 0] - s[0, 2], s[0, 1] + s[1, 0], s[1, 1] - s[0, 0] - s[2, 2], s[1, 2] + s[2, 1]],
-        [s[0, 1] - s[1, 0], s[2, 0] + s[0, 2], s[1, 2] + s[2, 1], s[2, 2] - s[0, 0] - s[1, 1]]])
-    power = n + count * np.eye(4)
+    power, square = np.empty((4, 4)), np.empty((4, 4))
+    power[0, 0] = s[0, 0] + s[1, 1] + s[2, 2]
+    power[1, 1] = s[0, 0] - s[1, 1] - s[2, 2]
+    power[2, 2] = s[1, 1] - s[0, 0] - s[2, 2]
+    power[3, 3] = s[2, 2] - s[0, 0] - s[1, 1]
+    power[0, 1] = power[1, 0] = s[1, 2] - s[2, 1]
+    power[0, 2] = power[2, 0] = s[2, 0] - s[0, 2]
+    power[0, 3] = power[3, 0] = s[0, 1] - s[1, 0]
+    power[1, 2] = power[2, 1] = s[0, 1] + s[1, 0]
+    power[1, 3] = power[3, 1] = s[2, 0] + s[0, 2]
+    power[2, 3] = power[3, 2] = s[1, 2] + s[2, 1]
+    for a in range(4):
+        power[a, a] += count
     for _ in range(SQUARINGS):
-        power = power @ power
-        power /= np.trace(power)
-    best = np.argmax(np.diag(power))            # the best-conditioned column of l1 q q^T
-    q[:] = power[:, best] / np.sqrt(np.sum(power[:, best] ** 2))
+        trace = 0.0
+        for a in range(4):
+            for b in range(4):
+                total = 0.0
+                for c in range(4):
+                    total += power[a, c] * power[c, b]
+                square[a, b] = total
+            trace += square[a, a]
+        for a in range(4):
+            for b in range(4):
+                power[a, b] = square[a, b] / trace
+    best = 0                                    # the best-conditioned column of l1 q q^T
+    for a in range(1, 4):
+        if power[a, a] > power[best, best]:
+            best = a
+    norm = np.sqrt(power[0, best] ** 2 + power[1, best] ** 2 + power[2, best] ** 2
+                   + power[3, best] ** 2)
+    for a in range(4):
+        q[a] = power[a, best] / norm

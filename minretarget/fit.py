@@ -155,13 +155,23 @@ class FitState(NamedTuple):
 
 @kernel
 def _forward_kernel(local, root, tpose, parents, rotations, joints):
-    """FK with matrices: local (J, 3, 3), root (3,), tpose (J, 3) -> rotations, joints."""
-    rotations[0] = local[0]
-    joints[0] = root
+    """FK with matrices: local (J, 3, 3), root (3,), tpose (J, 3) -> rotations, joints.
+    Scalar loops: numba's ``@`` calls BLAS on 3 x 3 blocks and costs seconds to compile."""
+    for a in range(3):
+        joints[0, a] = root[a]
+        for b in range(3):
+            rotations[0, a, b] = local[0, a, b]
     for j in range(1, local.shape[0]):
         p = parents[j]
-        rotations[j] = rotations[p] @ local[j]
-        joints[j] = joints[p] + rotations[p] @ (tpose[j] - tpose[p])
+        for a in range(3):
+            offset = 0.0
+            for b in range(3):
+                total = 0.0
+                for c in range(3):
+                    total += rotations[p, a, c] * local[j, c, b]
+                rotations[j, a, b] = total
+                offset += rotations[p, a, b] * (tpose[j, b] - tpose[p, b])
+            joints[j, a] = joints[p, a] + offset
 
 
 @kernel
@@ -241,7 +251,8 @@ def _plane_normal_equations_kernel(model_index, targets, weights, posed, posed_n
     that move each point (the translation as block 0): the upper blocks are summed, then
     copied below. Not a BLAS product: at this size BLAS's threads cost more than they give."""
     blocks = hessian.shape[0] // 3
-    row = np.zeros(hessian.shape[0])
+    row = np.empty(hessian.shape[0])
+    row[:] = 0.0
     columns = np.empty(hessian.shape[0], np.int64)
     moved = np.empty(blocks, np.int64)
     for i in range(model_index.shape[0]):
@@ -269,6 +280,7 @@ def _apply_step_kernel(local, rotations, step, parents, out):
     """Turn each joint's subtree by its world rotation vector: out[j] = R_p^T T_j R_p local[j]
     (R_p the parent's world rotation), rounded back onto a rotation through a quaternion."""
     turn, quaternion = np.empty((3, 3)), np.empty(4)
+    moved, product = np.empty((3, 3)), np.empty((3, 3))
     for j in range(local.shape[0]):
         x, y, z = step[3 + 3 * j], step[4 + 3 * j], step[5 + 3 * j]
         angle = np.sqrt(x * x + y * y + z * z)
@@ -278,10 +290,32 @@ def _apply_step_kernel(local, rotations, step, parents, out):
         quaternion[2], quaternion[3] = scale * y, scale * z
         _quaternion_to_matrix_one(quaternion, turn)
         if j == 0:
-            moved = turn @ local[0]
-        else:
+            for a in range(3):
+                for b in range(3):
+                    total = 0.0
+                    for c in range(3):
+                        total += turn[a, c] * local[0, c, b]
+                    moved[a, b] = total
+        else:                   # written out: numba's ``@`` calls BLAS on 3 x 3 blocks
             parent = rotations[parents[j]]
-            moved = parent.T @ (turn @ (parent @ local[j]))
+            for a in range(3):
+                for b in range(3):
+                    total = 0.0
+                    for c in range(3):
+                        total += parent[a, c] * local[j, c, b]
+                    moved[a, b] = total                              # R_p local
+            for a in range(3):
+                for b in range(3):
+                    total = 0.0
+                    for c in range(3):
+                        total += turn[a, c] * moved[c, b]
+                    product[a, b] = total                            # T_j R_p local
+            for a in range(3):
+                for b in range(3):
+                    total = 0.0
+                    for c in range(3):
+                        total += parent[c, a] * product[c, b]
+                    moved[a, b] = total                              # R_p^T T_j R_p local
         _matrix_to_quaternion_one(moved, quaternion)
         _quaternion_to_matrix_one(quaternion, out[j])
 
@@ -327,19 +361,6 @@ def _pull_normal_equations_kernel(joints, goal, weight, parents, hessian, gradie
 
 
 @kernel
-def _clamp_step_kernel(step):
-    """Each joint's turn to at most MAX_TURN and the root's shift to at most MAX_SHIFT, in
-    place."""
-    for block in range(step.shape[0] // 3):
-        limit = MAX_SHIFT if block == 0 else MAX_TURN
-        norm = np.sqrt(step[3 * block] ** 2 + step[3 * block + 1] ** 2
-                       + step[3 * block + 2] ** 2)
-        if norm > limit:
-            for a in range(3):
-                step[3 * block + a] *= limit / norm
-
-
-@kernel
 def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
                           cloud_starts, robust_width, model_to_cloud, model_stride):
     """``surface_terms`` on arrays: -> model index (N,), targets (N, 3), weights (N,), cost."""
@@ -348,19 +369,21 @@ def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cl
     inward_index = np.empty(len(cloud), np.int64)
     _nearest_kernel(posed, origin, cell, dims, order, starts, cloud, inward_distance,
                     inward_index)
-    outward_index = np.arange(0, len(posed), model_stride)
-    outward_points = np.empty((len(outward_index), 3))
-    for i in range(len(outward_index)):
-        outward_points[i] = posed[outward_index[i]]
-    outward_distance = np.empty(len(outward_index))
-    outward_nearest = np.empty(len(outward_index), np.int64)
+    outward_count = (len(posed) + model_stride - 1) // model_stride   # every stride-th
+    outward_points = np.empty((outward_count, 3))
+    for i in range(outward_count):
+        for a in range(3):
+            outward_points[i, a] = posed[i * model_stride, a]
+    outward_distance = np.empty(outward_count)
+    outward_nearest = np.empty(outward_count, np.int64)
     _nearest_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
                     outward_points, outward_distance, outward_nearest)
     # Pairs that share a model point share its row (``_plane_row`` depends on the point alone):
     # summed per model point, their weights and weighted targets give the same normal
     # equations from at most Q rows instead of P + Q / stride.
-    total = np.zeros(len(posed))
-    weighted_targets = np.zeros((len(posed), 3))
+    total, weighted_targets = np.empty(len(posed)), np.empty((len(posed), 3))
+    total[:] = 0.0
+    weighted_targets[:] = 0.0
     inward_cost, outward_cost = 0.0, 0.0
     for i in range(len(cloud)):
         w = _robust_weight(inward_distance[i], robust_width) / len(cloud)
@@ -368,19 +391,27 @@ def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cl
         for a in range(3):
             weighted_targets[inward_index[i], a] += w * cloud[i, a]
         inward_cost += min(inward_distance[i], TRUNCATE)
-    for i in range(len(outward_index)):
+    for i in range(outward_count):
         w = (model_to_cloud * _robust_weight(outward_distance[i], robust_width)
-             / len(outward_index))
-        total[outward_index[i]] += w
+             / outward_count)
+        total[i * model_stride] += w
         for a in range(3):
-            weighted_targets[outward_index[i], a] += w * cloud[outward_nearest[i], a]
+            weighted_targets[i * model_stride, a] += w * cloud[outward_nearest[i], a]
         outward_cost += min(outward_distance[i], TRUNCATE)
-    paired = np.flatnonzero(total > 0.0)
-    targets = np.empty((len(paired), 3))
-    for i in range(len(paired)):
-        targets[i] = weighted_targets[paired[i]] / total[paired[i]]
-    cost = inward_cost / len(cloud) + model_to_cloud * outward_cost / len(outward_index)
-    return paired, targets, total[paired], cost
+    count = 0
+    for q in range(len(posed)):
+        if total[q] > 0.0:
+            count += 1
+    paired, targets, weights = np.empty(count, np.int64), np.empty((count, 3)), np.empty(count)
+    count = 0
+    for q in range(len(posed)):
+        if total[q] > 0.0:
+            paired[count], weights[count] = q, total[q]
+            for a in range(3):
+                targets[count, a] = weighted_targets[q, a] / total[q]
+            count += 1
+    cost = inward_cost / len(cloud) + model_to_cloud * outward_cost / outward_count
+    return paired, targets, weights, cost
 
 
 @kernel
@@ -390,7 +421,8 @@ def _shape_rows_kernel(points_basis, joints_basis, bone_index, bone_weight, pare
     normal normals[i], for a fixed pose (world rotations (J, 3, 3)) and root: the point moves
     with its bones' joints and turns with their rotations."""
     shapes, bodies = joints_basis.shape[0], joints_basis.shape[1]
-    moved = np.zeros((shapes, bodies, 3))     # each joint's move per coefficient, root fixed
+    moved = np.empty((shapes, bodies, 3))     # each joint's move per coefficient, root fixed
+    moved[:] = 0.0
     for k in range(shapes):
         for j in range(1, bodies):
             p = parents[j]
@@ -418,6 +450,41 @@ def _shape_rows_kernel(points_basis, joints_basis, bone_index, bone_weight, pare
 
 
 @kernel
+def _solve_positive_definite(matrix, rhs, out):
+    """out = -matrix^-1 rhs, the Gauss-Newton step, for a symmetric positive definite
+    ``matrix`` (n, n), by Cholesky: matrix = L L^T, L written over its lower triangle
+    (``matrix`` is spent). The normal equations are positive definite by construction
+    (J^T W J, W >= 0, plus a damped diagonal with a floor); np.linalg.solve's LU gives the
+    same step to rounding, and its LAPACK wrapper costs seconds to compile (issue 40)."""
+    n = matrix.shape[0]
+    for j in range(n):
+        pivot = matrix[j, j]
+        for k in range(j):
+            pivot -= matrix[j, k] * matrix[j, k]
+        if not pivot > 0.0:
+            raise ValueError("the fit's normal equations are not positive definite")
+        pivot = np.sqrt(pivot)
+        matrix[j, j] = pivot
+        for i in range(j + 1, n):
+            total = matrix[i, j]
+            for k in range(j):
+                total -= matrix[i, k] * matrix[j, k]
+            matrix[i, j] = total / pivot
+    for i in range(n):                      # L y = rhs
+        total = rhs[i]
+        for k in range(i):
+            total -= matrix[i, k] * out[k]
+        out[i] = total / matrix[i, i]
+    for i in range(n - 1, -1, -1):          # L^T x = y
+        total = out[i]
+        for k in range(i + 1, n):
+            total -= matrix[k, i] * out[k]
+        out[i] = total / matrix[i, i]
+    for i in range(n):
+        out[i] = -out[i]
+
+
+@kernel
 def _robust_weight(distance, width):
     """Geman-McClure IRLS weight: 1 at 0, falling as (width / d)^4 far away."""
     ratio = distance / width
@@ -437,6 +504,8 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
     posed, posed_normals = np.empty((count, 3)), np.empty((count, 3))
     lever, reach = np.empty((count, bodies, 3)), np.empty((count, bodies))
     turned = np.empty_like(local)
+    hessian = np.empty((parameters, parameters))
+    gradient, step = np.empty(parameters), np.empty(parameters)
     cost = 0.0
     for _ in range(iterations):
         _forward_kernel(local, root, tpose, parents, rotations, joints)
@@ -445,7 +514,8 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
         paired, targets, weights, cost = _surface_pairs_kernel(
             posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
             robust_width, model_to_cloud, model_stride)
-        hessian, gradient = np.zeros((parameters, parameters)), np.zeros(parameters)
+        hessian[:] = 0.0
+        gradient[:] = 0.0
         _plane_normal_equations_kernel(paired, targets, weights, posed, posed_normals, lever,
                                        reach, hessian, gradient)
         if pull_weight > 0.0:
@@ -453,10 +523,19 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
                                           gradient)
         for a in range(parameters):           # Levenberg-Marquardt's damping, and a floor
             hessian[a, a] += 1e-3 * hessian[a, a] + 1e-5
-        step = -np.linalg.solve(hessian, gradient)
-        _clamp_step_kernel(step)
+        _solve_positive_definite(hessian, gradient, step)
+        for block in range(bodies + 1):       # the root's shift to at most MAX_SHIFT,
+            limit = MAX_SHIFT if block == 0 else MAX_TURN   # each joint's turn to MAX_TURN
+            norm = np.sqrt(step[3 * block] ** 2 + step[3 * block + 1] ** 2
+                           + step[3 * block + 2] ** 2)
+            if norm > limit:
+                for a in range(3):
+                    step[3 * block + a] *= limit / norm
         _apply_step_kernel(local, rotations, step, parents, turned)
-        local[:] = turned
+        for j in range(bodies):               # local = turned, without a slice assignment
+            for a in range(3):
+                for b in range(3):
+                    local[j, a, b] = turned[j, a, b]
         for a in range(3):
             root[a] += step[a]
     _forward_kernel(local, root, tpose, parents, rotations, joints)

@@ -29,16 +29,23 @@ def heading_features(joints, previous_root):
     cosine and the features (1, J*3 + 3): joints - root, then root - previous_root, both
     turned by minus the heading."""
     j = joints.shape[0]
-    root = joints[0]
-    across = (joints[_LEFT_HIP] - joints[_RIGHT_HIP]
-              + joints[_LEFT_SHOULDER] - joints[_RIGHT_SHOULDER])
-    norm = max(np.sqrt(across[0] ** 2 + across[2] ** 2), np.float32(1e-8))
-    sin, cos = -across[2] / norm, across[0] / norm
+    # scalars, not array expressions: numba compiles those slowly (issue 40)
+    across_x = (joints[_LEFT_HIP, 0] - joints[_RIGHT_HIP, 0]
+                + joints[_LEFT_SHOULDER, 0] - joints[_RIGHT_SHOULDER, 0])
+    across_z = (joints[_LEFT_HIP, 2] - joints[_RIGHT_HIP, 2]
+                + joints[_LEFT_SHOULDER, 2] - joints[_RIGHT_SHOULDER, 2])
+    norm = max(np.sqrt(across_x ** 2 + across_z ** 2), np.float32(1e-8))
+    sin, cos = -across_z / norm, across_x / norm
     features = np.empty((1, 3 * j + 3), dtype=np.float32)
     for k in range(j + 1):
-        v = joints[k] - root if k < j else root - previous_root
+        if k < j:
+            x, y, z = (joints[k, 0] - joints[0, 0], joints[k, 1] - joints[0, 1],
+                       joints[k, 2] - joints[0, 2])
+        else:
+            x, y, z = (joints[0, 0] - previous_root[0], joints[0, 1] - previous_root[1],
+                       joints[0, 2] - previous_root[2])
         features[0, 3 * k], features[0, 3 * k + 1], features[0, 3 * k + 2] = turn_about_up(
-            v[0], v[1], v[2], -sin, cos)
+            x, y, z, -sin, cos)
     return features, sin, cos
 
 

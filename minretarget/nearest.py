@@ -43,14 +43,17 @@ def build_grid(points, cell=None):
 def _build_grid_kernel(points, cell):
     """``build_grid`` on checked points; ``cell`` 0: the default -> origin, cell, dims, order,
     starts (``Grid``'s fields after the points). Callable from other kernels."""
-    low, high = points[0].copy(), points[0].copy()
+    low, high, extent = np.empty(3), np.empty(3), np.empty(3)
+    for a in range(3):
+        low[a] = high[a] = points[0, a]
     for n in range(1, len(points)):
         for a in range(3):
             low[a] = min(low[a], points[n, a])
             high[a] = max(high[a], points[n, a])
-    extent = high - low
+    for a in range(3):
+        extent[a] = high[a] - low[a]
     if cell == 0.0:      # a surface of extent L holds ~N points in ~(L / cell)^2 cells
-        cell = np.sqrt(np.sum(extent ** 2) / len(points))
+        cell = np.sqrt((extent[0] ** 2 + extent[1] ** 2 + extent[2] ** 2) / len(points))
     # at most MAX_CELLS_PER_POINT cells a point, however far an outlier stretches the grid
     volume = (extent[0] + 1e-9) * (extent[1] + 1e-9) * (extent[2] + 1e-9)
     cell = max(cell, (volume / (MAX_CELLS_PER_POINT * len(points))) ** (1 / 3), 1e-4)
@@ -58,7 +61,8 @@ def _build_grid_kernel(points, cell):
     for a in range(3):
         dims[a] = int(np.floor(extent[a] / cell)) + 1
     order = np.empty(len(points), np.int64)
-    starts = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    starts = np.empty(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    starts[:] = 0
     _sort_into_cells(points, low, cell, dims, order, starts)
     return low, cell, dims, order, starts
 
@@ -91,7 +95,9 @@ def _sort_into_cells(points, origin, cell, dims, order, starts):
         starts[index[n] + 1] += 1
     for c in range(1, len(starts)):
         starts[c] += starts[c - 1]
-    filled = starts[:-1].copy()
+    filled = np.empty(len(starts) - 1, np.int64)
+    for c in range(len(filled)):
+        filled[c] = starts[c]
     for n in range(len(points)):
         order[filled[index[n]]] = n
         filled[index[n]] += 1

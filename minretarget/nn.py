@@ -72,5 +72,6 @@ def gru_step(x, hidden, layers):
     """Stacked GRU step; updates ``hidden`` (layers, H) in place, returns the top output."""
     for i in range(len(layers)):
         x = gru_layer_step(x, hidden[i:i + 1], layers[i])
-        hidden[i] = x[0]
+        for k in range(x.shape[1]):     # not hidden[i] = x[0]: numba compiles slice
+            hidden[i, k] = x[0, k]      # assignments' shape check slowly (issue 40)
     return x

@@ -72,8 +72,9 @@ def _nearest(points, centre, k):
     """Indices of the k <= P points nearest ``centre`` (3,), in no particular order (the
     max-pool does not care). A max-heap of the k nearest so far: most points fail one comparison with
     its top, so this is about one pass over the points, where a full sort orders them all."""
-    heap_distance = np.full(k, np.inf, dtype=np.float32)
-    heap_index = np.zeros(k, dtype=np.int64)
+    heap_distance, heap_index = np.empty(k, dtype=np.float32), np.empty(k, dtype=np.int64)
+    heap_distance[:] = np.inf
+    heap_index[:] = 0
     for i in range(points.shape[0]):
         dx, dy, dz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
         distance = dx * dx + dy * dy + dz * dz            # scalars: no array per point
@@ -111,7 +112,8 @@ def _refine_kernel(points, joints, weights, k):
     for layer in weights.point:
         x = dense(x, layer, True)
     width = x.shape[1]
-    head_input = np.zeros((num_joints, width + 4 * num_joints), dtype=np.float32)
+    head_input = np.empty((num_joints, width + 4 * num_joints), dtype=np.float32)
+    head_input[:] = 0.0
     for j in range(num_joints):
         for c in range(width):                                   # max-pool the j-th block
             best = x[j * k, c]
@@ -122,4 +124,8 @@ def _refine_kernel(points, joints, weights, k):
             for axis in range(3):
                 head_input[j, width + 3 * other + axis] = joints[other, axis] - joints[j, axis]
         head_input[j, width + 3 * num_joints + j] = 1.0
-    return joints + SCALE * mlp(head_input, weights.head)
+    refined = mlp(head_input, weights.head)                     # (J, 3) offsets / SCALE
+    for j in range(num_joints):
+        for axis in range(3):
+            refined[j, axis] = joints[j, axis] + SCALE * refined[j, axis]
+    return refined

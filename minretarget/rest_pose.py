@@ -88,36 +88,42 @@ def prior_reference(weights, target_tpose, source_lengths):
     return out
 
 
+# The kernels below are written with scalar loops: numba compiles array expressions, slice
+# assignments and its BLAS wrappers slowly, and SMRM's kernel takes them all in (issue 40).
+
 @kernel
 def _bone_lengths_kernel(joints, out):
     """(J, 3) joints -> out (B,) bone lengths."""
     for b in range(out.shape[0]):
-        v = joints[b + 1] - joints[_PARENTS[b + 1]]
-        out[b] = np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
-
-
-@kernel
-def _features_kernel(lengths, out):
-    """(B,) bone lengths -> out (F,), the module docstring's features."""
-    total = np.float32(0.0)
-    for b in range(lengths.shape[0]):
-        total += lengths[b]
-    total = max(total, np.float32(1e-6))
-    out[0] = 1.0
-    for b in range(lengths.shape[0]):
-        out[1 + b] = np.float32(0.5) * (lengths[b] + lengths[_MIRROR_BONE[b]]) / total
-    out[-1] = total
+        child, parent = b + 1, _PARENTS[b + 1]
+        x = joints[child, 0] - joints[parent, 0]
+        y = joints[child, 1] - joints[parent, 1]
+        z = joints[child, 2] - joints[parent, 2]
+        out[b] = np.sqrt(x ** 2 + y ** 2 + z ** 2)
 
 
 @kernel
 def _rest_directions_kernel(directions, lengths, out):
-    """(F, B*3) map, (B,) bone lengths -> out (B, 3) unit rest bone directions."""
+    """(F, B*3) map, (B,) bone lengths -> out (B, 3) unit rest bone directions: the module
+    docstring's features of the lengths, through the map."""
+    total = np.float32(0.0)
+    for b in range(lengths.shape[0]):
+        total += lengths[b]
+    total = max(total, np.float32(1e-6))
     features = np.empty(directions.shape[0], dtype=np.float32)
-    _features_kernel(lengths, features)
-    flat = features @ directions                                       # (B*3,)
+    features[0] = 1.0
+    for b in range(lengths.shape[0]):
+        features[1 + b] = np.float32(0.5) * (lengths[b] + lengths[_MIRROR_BONE[b]]) / total
+    features[-1] = total
+    flat = np.empty(directions.shape[1], dtype=np.float32)            # features @ directions
+    flat[:] = 0.0
+    for f in range(directions.shape[0]):
+        for c in range(directions.shape[1]):
+            flat[c] += features[f] * directions[f, c]
     for b in range(out.shape[0]):
-        v = flat[3 * b:3 * b + 3]
-        out[b] = v / max(np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2), np.float32(1e-12))
+        x, y, z = flat[3 * b], flat[3 * b + 1], flat[3 * b + 2]
+        norm = max(np.sqrt(x ** 2 + y ** 2 + z ** 2), np.float32(1e-12))
+        out[b, 0], out[b, 1], out[b, 2] = x / norm, y / norm, z / norm
 
 
 @kernel
@@ -130,11 +136,16 @@ def _prior_reference_kernel(directions, tpose, source_lengths, out):
     predicted_target = np.empty((bones, 3), dtype=np.float32)
     _rest_directions_kernel(directions, source_lengths, predicted_source)
     _rest_directions_kernel(directions, target_lengths, predicted_target)
-    out[0] = tpose[0]
+    turned = np.empty(3, dtype=np.float32)
+    for a in range(3):
+        out[0, a] = tpose[0, a]
     for b in range(bones):
         child, parent = b + 1, _PARENTS[b + 1]
         length = target_lengths[b]
-        turned = ((tpose[child] - tpose[parent]) / max(length, np.float32(1e-12))
-                  + predicted_source[b] - predicted_target[b])
+        for a in range(3):
+            turned[a] = ((tpose[child, a] - tpose[parent, a]) / max(length, np.float32(1e-12))
+                         + predicted_source[b, a] - predicted_target[b, a])
         norm = np.sqrt(turned[0] ** 2 + turned[1] ** 2 + turned[2] ** 2)
-        out[child] = out[parent] + turned * (length / max(norm, np.float32(1e-12)))
+        scale = length / max(norm, np.float32(1e-12))
+        for a in range(3):
+            out[child, a] = out[parent, a] + turned[a] * scale

@@ -43,12 +43,15 @@ def _skinning_weights_kernel(points, tpose_joints, weights):
                 offsets[i, 3 * k + a] = points[i, a] - tpose_joints[k, a]
     logits = mlp(offsets, weights)                                       # (V, J)
     for i in range(v):   # softmax, shifted by the row maximum so exp cannot overflow
-        shift = logits[i].max()
+        shift = logits[i, 0]
+        for k in range(1, j):
+            shift = max(shift, logits[i, k])
         total = np.float32(0.0)
         for k in range(j):
             logits[i, k] = np.exp(logits[i, k] - shift)
             total += logits[i, k]
-        logits[i] /= total
+        for k in range(j):      # scalars: a slice assignment costs numba seconds to compile
+            logits[i, k] /= total
     return logits
 
 

@@ -58,11 +58,11 @@ def regress_checked(points, weights, workers):
     batch = points if points.ndim == 3 else points[None]                # (B, P, 3)
     if workers > 1 and len(batch) > 1:   # whole clouds side by side: no meeting points
         joints = list(_thread_pool(workers).map(
-            lambda cloud: _regress_joints_kernel(cloud, weights), batch))
+            lambda cloud: _regress_joints_one(cloud, weights), batch))
     elif workers > 1:                     # one cloud: its points shared
         joints = [_regress_joints_shared(batch[0], weights, _thread_pool(workers), workers)]
     else:
-        joints = [_regress_joints_kernel(cloud, weights) for cloud in batch]
+        joints = [_regress_joints_one(cloud, weights) for cloud in batch]
     return np.stack(joints) if points.ndim == 3 else joints[0]
 
 
@@ -104,7 +104,7 @@ def _thread_pool(workers):
 
 
 def _regress_joints_shared(points, weights, pool, parts):
-    """``_regress_joints_kernel`` with the per-point layers on ``parts`` slices of the
+    """``_regress_joints_one`` with the per-point layers on ``parts`` slices of the
     points in ``pool``'s threads; the max-pools combine the slices' maxima."""
     def pooled(function, slices):
         return np.max(np.concatenate(list(pool.map(function, slices))), axis=0, keepdims=True)
@@ -126,22 +126,20 @@ def _regress_joints_shared(points, weights, pool, parts):
 
 @kernel
 def _centred(points):
-    """(P, 3) -> the points less their centroid (P, 3), and the centroid (1, 3)."""
-    centroid = np.zeros((1, 3), dtype=np.float32)
+    """(P, 3) -> the points less their centroid (P, 3), and the centroid (1, 3). Scalar
+    loops: numba compiles array expressions and slice assignments slowly (issue 40)."""
+    centroid = np.empty((1, 3), dtype=np.float32)
+    centroid[:] = 0.0
     for i in range(points.shape[0]):
-        centroid[0] += points[i]
-    centroid /= np.float32(points.shape[0])
-    return points - centroid, centroid
-
-
-@kernel
-def _max_over_points(features):
-    """(P, C) -> (1, C) column maxima."""
-    out = features[0:1].copy()
-    for i in range(1, features.shape[0]):
-        for c in range(features.shape[1]):
-            out[0, c] = max(out[0, c], features[i, c])
-    return out
+        for a in range(3):
+            centroid[0, a] += points[i, a]
+    for a in range(3):
+        centroid[0, a] /= np.float32(points.shape[0])
+    centred = np.empty_like(points)
+    for i in range(points.shape[0]):
+        for a in range(3):
+            centred[i, a] = points[i, a] - centroid[0, a]
+    return centred, centroid
 
 
 @kernel
@@ -149,7 +147,13 @@ def _point_feature(x, net, first):
     """Point layers ``first``.. of ``net`` on x (P, C), then max-pool: -> (1, C_last)."""
     for i in range(first, len(net.point)):
         x = dense(x, net.point[i], True)
-    return _max_over_points(x)
+    out = np.empty((1, x.shape[1]), dtype=x.dtype)           # column maxima
+    for c in range(x.shape[1]):
+        out[0, c] = x[0, c]
+    for i in range(1, x.shape[0]):
+        for c in range(x.shape[1]):
+            out[0, c] = max(out[0, c], x[i, c])
+    return out
 
 
 @kernel
@@ -172,16 +176,31 @@ def _first_layer(x, input_transform, layer):
 @kernel
 def _joints(feature, head, centroid):
     """The pooled feature (1, C) -> (J, 3) joints: the head's offsets plus the centroid."""
-    return mlp(feature, head).reshape(-1, 3) + centroid
+    joints = mlp(feature, head).reshape(-1, 3)
+    for j in range(joints.shape[0]):
+        for a in range(3):
+            joints[j, a] += centroid[0, a]
+    return joints
 
 
-@kernel
-def _regress_joints_kernel(points, weights):
+def _regress_joints_one(points, weights):
+    """SKR on one cloud (P, 3) -> joints (J, 3), stage by stage. Plain Python over the stage
+    kernels (which the shared path calls too), not one kernel around them: numba compiled
+    such a kernel with all of them inlined again, most of a second's cold start (issue 40),
+    for a few microseconds of calls a cloud."""
     x, centroid = _centred(points)                                       # (P, 3), (1, 3)
     net = weights.input_transform
     x = _first_layer(x, _transform_matrix(_point_feature(x, net, 0), net.head),
                      weights.regressor.point[0])                          # (P, w0)
     net = weights.feature_transform
-    x = np.dot(x, _transform_matrix(_point_feature(x, net, 0), net.head))  # (P, w0)
-    feature = _point_feature(x, weights.regressor, 1)                    # (1, w2)
+    feature = _transformed_feature(x, _transform_matrix(_point_feature(x, net, 0), net.head),
+                                   weights.regressor)                     # (1, w2)
     return _joints(feature, weights.regressor.head, centroid)            # (J, 3)
+
+
+@kernel
+def _transformed_feature(x, transform, net):
+    """(P, w0) features -> through the feature transform (w0, w0), then point layers 1..
+    of ``net`` and the max-pool: (1, w2). The layer offset is an np.int64, not a literal 1:
+    numba compiles a kernel once per literal value it is called with."""
+    return _point_feature(np.dot(x, transform), net, np.int64(1))

@@ -118,6 +118,22 @@ def test_normal_equations_are_the_rows_products(model):
     np.testing.assert_allclose(gradient, 1 + rows.T @ values, atol=1e-12)
 
 
+def test_gauss_newton_step_is_the_solution_of_the_normal_equations():
+    """The fit's Cholesky solve (not np.linalg.solve: its LAPACK wrapper is slow to compile)
+    gives -H^-1 g for positive definite H, and refuses a matrix that is not."""
+    rng = np.random.default_rng(13)
+    rows = rng.normal(size=(400, fit.PARAMETERS)) * 10.0 ** rng.uniform(-3, 0, fit.PARAMETERS)
+    hessian = rows.T @ rows + 1e-5 * np.eye(fit.PARAMETERS)     # condition number ~6e5
+    gradient = rng.normal(size=fit.PARAMETERS)
+    step = np.empty(fit.PARAMETERS)
+    fit._solve_positive_definite(hessian.copy(), gradient, step)
+    want = -np.linalg.solve(hessian, gradient)
+    np.testing.assert_allclose(step, want, rtol=1e-8, atol=1e-8 * np.abs(want).max())
+    indefinite = hessian - 2 * np.linalg.eigvalsh(hessian).max() * np.eye(fit.PARAMETERS)
+    with pytest.raises(ValueError, match="positive definite"):
+        fit._solve_positive_definite(indefinite, gradient, step)
+
+
 def test_pull_normal_equations_are_the_joints_derivative_products(model):
     state = posed_state(model, seed=3)
     tpose, joints = state[2], state[6]
