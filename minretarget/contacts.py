@@ -221,7 +221,8 @@ def _bend_leg(rotations, joints, global_pelvis, leg, goal):
     #    |thigh + v(t)|^2 = reach^2 gives A cos t + B sin t = C (A = thigh . v_across,
     #    B = thigh . (n x v_across)). Of its two roots, the smaller turn that does not bend
     #    the knee backwards.
-    hinge = _rotate(global_hip, _LEFT)
+    hinge = _rotate(global_hip, _LEFT.copy())      # a copy: the constant is read-only, and
+    #                                                  a second type compiles _rotate again
     along = np.sum(shank * hinge) * hinge
     across = shank - along
     a = np.sum(thigh * across)

@@ -157,6 +157,8 @@ def forward_kinematics(rotations, root, tpose_joints):
     except ValueError:
         raise ValueError(f"tpose_joints of shape {tpose_joints.shape} does not broadcast to "
                          f"the rotations' batch shape {batch}") from None
+    # Writable, as every other caller's: numba compiles a kernel again for a read-only array.
+    tpose = np.require(tpose, requirements="W")
     n = int(np.prod(batch, dtype=np.int64))
     joints = np.empty((n, NUM_JOINTS, 3), dtype=np.float32)
     global_rotations = np.empty((n, NUM_JOINTS, 3, 3), dtype=np.float32)
