@@ -1,11 +1,15 @@
 """Throughput of ``minretarget batch``: 1 and 2 local workers, the overhead per pair, Ray.
 
-    python benchmarks/batch.py [--quick] [--repeats N] [--quiet-wait S] [--json OUT.json]
+    python benchmarks/batch.py [--quick] [--repeats N] [--quiet-wait S] [--preset NAME]
+                               [--json OUT.json]
 
 The job: the shipped sample's source (CMU walk 08_01, 2048-point clouds) played forward and
 backward, tiled to 300 frames (--quick: its 68 frames), onto its target and three stretched
-copies of it: 2 sources x 4 targets = 8 pairs, written as npz and bvh. Measured, each batch
-started in this process (``batch.run_batch``) with every pair's frames counted:
+copies of it: 2 sources x 4 targets = 8 pairs, written as npz and bvh, with the pipeline
+``--preset`` (the job's option ``preset``; default: ``default``, the package's default preset,
+named in the JSON as ``pipeline``); the frames alone and the ``retarget`` processes run the
+same pipeline. Measured, each batch started in this process (``batch.run_batch``) with every
+pair's frames counted:
   * frames/s with 1 and 2 local workers, and ``scaling_2_workers``, their ratio;
   * ``overhead_fraction``: the time a pair costs in the 1-worker batch beyond retargeting its
     frames (wall / pairs minus the frames' time, measured in this process on a set-up,
@@ -20,6 +24,15 @@ started in this process (``batch.run_batch``) with every pair's frames counted:
     ``fixed_seconds_per_pair``, the fixed seconds over 8 pairs. The overhead per pair is
     their sum. ``local_1_pair_seconds``: each pair's seconds in the best 1-worker batch, in
     the order run (the first pays the worker's set-up, each new target its set-up);
+    ``overhead_parts``: that batch's overhead (times 8) split without a second batch: its
+    wall time outside its pairs (the job check, the worker's start and exit), and its pairs'
+    own seconds beyond 8 times the frames' time, and its cheapest pair's seconds (a pair
+    whose target its worker had set up: frames and the per-pair costs);
+    ``overhead_fraction_in_batch``: that batch's seconds per pair beyond its cheapest pair,
+    over the one-pair run: the overhead from one run, no baseline measured at another time
+    or in another process; ``overhead_fraction_cpu``: ``overhead_fraction`` from CPU seconds
+    (``cpu_seconds``, each run's: this process and its children; the frames' own), which
+    other users' work changes less than wall times;
   * ``ray_overhead_fraction``: a 2-actor Ray batch on a local instance (started for that run
     alone, not timed) against the 2-worker local batch, and ``ray_identical``: the same bytes.
 Every process has one BLAS thread. Each time is the best of N runs (default 2), the settings
@@ -49,8 +62,10 @@ from threadpoolctl import threadpool_limits
 
 from minretarget import batch
 from minretarget.atomic import atomic_write
-from minretarget.cli import int_at_least, load_retargeter, retarget_to_files, set_target
+from minretarget.cli import (blas_threads, int_at_least, load_retargeter, pipeline_config,
+                             retarget_to_files, set_target)
 from minretarget.formats.mesh import write_mesh
+from minretarget.pipeline import PRESETS, preset
 from minretarget.sources import SAMPLE, load_sample, open_source
 from minretarget.units import CANONICAL
 
@@ -61,8 +76,9 @@ STRETCH = {"base": (1.0, 1.0, 1.0), "tall": (1.0, 1.12, 1.0), "short": (0.95, 0.
            "wide": (1.15, 1.0, 1.2)}      # target name -> (x, y, z) scale of the sample's
 
 
-def make_job(folder, frames):
-    """Write the job's sources, targets and ``job.json`` into ``folder``; returns the job."""
+def make_job(folder, frames, pipeline="default"):
+    """Write the job's sources, targets and ``job.json`` (its pairs run the preset
+    ``pipeline``) into ``folder``; returns the job."""
     with np.load(SAMPLE, allow_pickle=False) as data:
         clouds = data["source_points"].astype(np.float32)                    # (T, P, 3)
         points, faces = data["target_points"], data["target_faces"]
@@ -72,14 +88,15 @@ def make_job(folder, frames):
     np.save(folder / "walk_back.npy", tiled[::-1].copy())
     for name, scale in STRETCH.items():
         write_mesh(folder / f"{name}.ply", points * scale, faces)
-    return write_job(folder / "job.json", list(STRETCH))
+    return write_job(folder / "job.json", list(STRETCH), pipeline)
 
 
-def write_job(path, targets):
-    """Write a job of both sources onto ``targets`` (names in STRETCH) at ``path``."""
+def write_job(path, targets, pipeline="default"):
+    """Write a job of both sources onto ``targets`` (names in STRETCH) at ``path``, with the
+    preset ``pipeline``."""
     path.write_text(json.dumps({"sources": ["walk.npy", "walk_back.npy"],
                                 "targets": [f"{name}.ply" for name in targets],
-                                "options": {"format": FORMATS}}))
+                                "options": {"format": FORMATS, "preset": pipeline}}))
     return path
 
 
@@ -108,13 +125,15 @@ def busy_seconds():
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK"), ours
 
 
-def single_run_seconds(folder, *outs):
-    """Wall time of one `minretarget retarget` process for the first pair, or of as many
-    run at once as ``outs`` (each into its own folder): independent processes, no pool."""
+def single_run_seconds(folder, pipeline, *outs):
+    """Wall time of one `minretarget retarget` process (``--preset pipeline``) for the first
+    pair, or of as many run at once as ``outs`` (each into its own folder): independent
+    processes, no pool."""
     start = time.perf_counter()
     runs = [subprocess.Popen([sys.executable, "-m", "minretarget", "retarget",
                               str(folder / "walk.npy"), str(folder / "base.ply"), "--out",
-                              str(out), "--format", ",".join(FORMATS), "--threads", "1"],
+                              str(out), "--format", ",".join(FORMATS), "--threads", "1",
+                              "--preset", pipeline],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                              env={**os.environ, "OPENBLAS_NUM_THREADS": "1",
                                   "OMP_NUM_THREADS": "1"}) for out in outs]
@@ -122,17 +141,25 @@ def single_run_seconds(folder, *outs):
     return time.perf_counter() - start
 
 
-def frames_seconds(folder, out):
-    """Seconds to retarget and write the first pair's frames, the retargeter set up (the
-    first call in a process also compiles the kernels)."""
-    retargeter = load_retargeter()
+def frames_seconds(folder, out, pipeline="default"):
+    """(Seconds, CPU seconds) to retarget and write the first pair's frames with the preset
+    ``pipeline``, the retargeter set up (the first call in a process also compiles the
+    kernels), with one
+    BLAS thread as in a worker and in ``retarget --threads 1`` (``cli.blas_threads``: also
+    SciPy's BLAS, which SKR's kernels call and which ``threadpool_limits`` misses when SciPy
+    loads after it: with 2 threads, these frames ran faster on an idle machine and several
+    times slower on a busy one)."""
+    # The pipeline a pair of the job runs: retarget's options, as the batch parses them.
+    retargeter = load_retargeter(config=pipeline_config(batch.parse_options(
+        "source", "target", "out", {"format": FORMATS, "preset": pipeline})))
     points, faces, _ = load_sample()[1:]
     set_target(retargeter, points, faces, "base")
-    start = time.perf_counter()
-    retarget_to_files(retargeter, lambda first: open_source(folder / "walk.npy", CANONICAL,
-                                                            start=first),
-                      out, FORMATS, CANONICAL, {"points": None, "seed": 0}, progress=False)
-    return time.perf_counter() - start
+    with blas_threads(1):
+        start, cpu = time.perf_counter(), time.process_time()
+        retarget_to_files(retargeter, lambda first: open_source(folder / "walk.npy", CANONICAL,
+                                                                start=first),
+                          out, FORMATS, CANONICAL, {"points": None, "seed": 0}, progress=False)
+        return time.perf_counter() - start, time.process_time() - cpu
 
 
 def others_busy(seconds):
@@ -161,9 +188,11 @@ def start_ray():
     return ray
 
 
-def run(quick, repeats, quiet_wait=0):
-    results = {"quick": quick, "repeats": repeats, "load_average_before": os.getloadavg(),
-               "cpus": os.cpu_count(), "quiet_wait_seconds": quiet_wait}
+def run(quick, repeats, quiet_wait=0, pipeline="default"):
+    results = {"quick": quick, "repeats": repeats, "started": time.strftime("%Y-%m-%d %H:%M"),
+               "load_average_before": os.getloadavg(),
+               "cpus": os.cpu_count(), "quiet_wait_seconds": quiet_wait, "preset": pipeline,
+               "pipeline": preset(pipeline).preset_name()}
     length, pairs = (68 if quick else 300), 8                    # frames per pair, pairs
     settings = {"local_1": ("job", {"workers": 1}), "local_2": ("job", {"workers": 2}),
                 "ray_2": ("job", {"workers": 2, "ray": "auto"}),
@@ -171,26 +200,31 @@ def run(quick, repeats, quiet_wait=0):
     seconds = {name: [] for name in [*settings, "single", "frames", "single_2_at_once"]}
     # Other users' busy cores during each run (not Ray's: its processes are not ours).
     others = {name: [] for name in seconds if name != "ray_2"}
+    cpu = {name: [] for name in others}            # CPU seconds of this process and children
     waited = []                                    # seconds waited for a quiet machine
     pair_seconds = []                               # each local_1 run's pairs, in order run
 
     def timed(name, measure):
-        """``measure()`` -> seconds, recorded with the other users' busy cores meanwhile."""
+        """``measure()`` -> seconds (or (seconds, CPU seconds) of a part of it), recorded
+        with the other users' busy cores meanwhile and the CPU seconds of this process and
+        its children."""
         waited.append(wait_for_quiet(quiet_wait))
         machine, ours = busy_seconds()
         start = time.perf_counter()
         value = measure()
         wall = time.perf_counter() - start
         machine, ours = np.subtract(busy_seconds(), (machine, ours))
+        value, used = value if isinstance(value, tuple) else (value, ours)
         seconds[name].append(value)
         if name in others:
             others[name].append((machine - ours) / wall)
+            cpu[name].append(used)
 
     with tempfile.TemporaryDirectory() as temporary, threadpool_limits(1):
         folder = Path(temporary)
-        jobs = {"job": make_job(folder, length),
-                "half": write_job(folder / "half.json", list(STRETCH)[:2])}
-        frames_seconds(folder, folder / "compile")
+        jobs = {"job": make_job(folder, length, pipeline),
+                "half": write_job(folder / "half.json", list(STRETCH)[:2], pipeline)}
+        frames_seconds(folder, folder / "compile", pipeline)
         for index in range(repeats):   # interleaved: a change of load touches every setting
             for name, (job, options) in settings.items():
                 # Ray runs only while its own batch is timed: its idle processes (about
@@ -211,14 +245,20 @@ def run(quick, repeats, quiet_wait=0):
                     summary = json.loads((folder / f"{name}_{index}" / batch.SUMMARY)
                                          .read_text())
                     pair_seconds.append(run_order(folder / f"{name}_{index}", summary))
-            timed("single", lambda: single_run_seconds(folder, folder / f"single_{index}"))
-            timed("frames", lambda: frames_seconds(folder, folder / f"frames_{index}"))
+            timed("single", lambda: single_run_seconds(folder, pipeline,
+                                                       folder / f"single_{index}"))
+            timed("frames", lambda: frames_seconds(folder, folder / f"frames_{index}",
+                                                   pipeline))
             timed("single_2_at_once", lambda: single_run_seconds(
-                folder, *(folder / f"single_{index}_{k}" for k in (1, 2))))
+                folder, pipeline, *(folder / f"single_{index}_{k}" for k in (1, 2))))
         identical = {name: files(folder / f"{name}_0") == files(folder / "local_1_0")
                      for name in ("local_2", "ray_2")}
     local_1, local_2, on_ray, half, single, frames, two = (min(seconds[name])
                                                            for name in seconds)
+    best = int(np.argmin(seconds["local_1"]))
+    in_pairs = sum(each for _, each in pair_seconds[best])     # its pairs' own seconds
+    cheapest = min(each for _, each in pair_seconds[best])
+    cpu_1, cpu_single, cpu_frames = (min(cpu[name]) for name in ("local_1", "single", "frames"))
     total = pairs * length
     marginal = (local_1 - half) / (pairs - pairs // 2)       # seconds a pair adds
     fixed = local_1 - pairs * marginal                       # seconds a batch pays once
@@ -235,16 +275,22 @@ def run(quick, repeats, quiet_wait=0):
         seconds=seconds, single_run_seconds=single, frames_seconds_per_pair=frames,
         overhead_seconds_per_pair=local_1 / pairs - frames,
         overhead_fraction=(local_1 / pairs - frames) / single,
+        overhead_parts={"outside_pairs_seconds": local_1 - in_pairs,
+                        "pairs_beyond_frames_seconds": in_pairs - pairs * frames,
+                        "cheapest_pair_seconds": cheapest},
+        overhead_fraction_in_batch=(local_1 / pairs - cheapest) / single,
+        cpu_seconds=cpu,
+        overhead_fraction_cpu=(cpu_1 / pairs - cpu_frames) / cpu_single,
         overhead_split={"batch_fixed_seconds": fixed, "pair_marginal_seconds": marginal,
                         "pair_marginal_overhead_seconds": marginal - frames,
                         "fixed_seconds_per_pair": fixed / pairs,
                         "half_job_pairs": pairs // 2},
-        local_1_pair_seconds=pair_seconds[int(np.argmin(seconds["local_1"]))],
+        local_1_pair_seconds=pair_seconds[best],
         single_run_overhead_fraction=(single - frames) / single,
         ray_overhead_fraction=on_ray / local_2 - 1,
         ray_identical=identical["ray_2"], local_identical=identical["local_2"],
         other_users_cores_busy=others, seconds_waited_for_quiet=sum(waited),
-        load_average_after=os.getloadavg())
+        load_average_after=os.getloadavg(), ended=time.strftime("%Y-%m-%d %H:%M"))
     return results
 
 
@@ -257,9 +303,12 @@ def main():
                         help="before each run, wait at most SECONDS for other users' "
                         f"processes to keep fewer than {QUIET} cores busy (default 0: no "
                         "wait; a shared machine)")
+    parser.add_argument("--preset", choices=["default", *PRESETS], default="default",
+                        help="the pipeline every pair runs (the job's option preset, "
+                        "retarget's --preset; default: the package's default)")
     parser.add_argument("--json", default=None, help="write the results to this file")
     args = parser.parse_args()
-    results = run(args.quick, args.repeats, args.quiet_wait)
+    results = run(args.quick, args.repeats, args.quiet_wait, args.preset)
     text = json.dumps(results, indent=2)
     print(text)
     if args.json:

@@ -391,7 +391,9 @@ def _quietly(read, args):
 # --- a worker: one process (or Ray actor), pairs one after another ---------------------------
 
 _WEIGHTS = {}      # weights path (None: the shipped ones) -> Weights, loaded once per worker
-_TARGETS = {}      # (weights path, refine, target content hash) -> (tpose_joints, skin_weights)
+_TARGETS = {}      # (weights path, refine, mirror_target, target content hash)
+                   # -> (tpose_joints, skin_weights)
+_WARMED = {}       # (weights path, target hash, config, skeleton) -> the warm-up's warnings
 _REPORT = [None]   # report((pair name, frames done)) to the batch, or None
 
 
@@ -426,20 +428,51 @@ def _content_hash(*arrays):
     return digest.hexdigest()
 
 
+class _WorkerRetargeter(Retargeter):
+    """A worker's Retargeter, whose ``warm_up`` runs once per worker for each weights file,
+    target, pipeline and kind of source. ``cli.retarget_to_files`` warms up every stream: it
+    loads the kernels (``minretarget retarget`` pays that once, in its one stream), then
+    retargets two frames of the target's own points, which change nothing after the stream's
+    restart (``Retargeter.reset``) but the warnings given (a source fit that finds no body in
+    them); the later pairs get the first one's warnings again and skip those two frames
+    (with the ``fitted`` preset, 0.07 - 0.10 s of each pair: docs/batch.md)."""
+
+    warm_key = None          # (weights path, target content hash), set by ``_set_target``
+
+    def warm_up(self, skeleton=False):
+        if self.target is None or self.warm_key is None:
+            return super().warm_up(skeleton)
+        key = (*self.warm_key, self.config, bool(skeleton))
+        if key in _WARMED:
+            self.reset()                    # where warm_up leaves the stream: at its start
+        else:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                super().warm_up(skeleton)
+            _WARMED[key] = [warning.message for warning in caught]
+        for message in _WARMED[key]:
+            warnings.warn(message, stacklevel=2)
+        return None
+
+
 def _retargeter(args):
     """A Retargeter for a pair's parsed options, as ``minretarget retarget`` makes it, with
-    the worker's copy of its weights."""
+    the worker's copy of its weights (a ``_WorkerRetargeter``)."""
     if args.weights not in _WEIGHTS:
         _WEIGHTS[args.weights] = load_weights(args.weights)
-    return Retargeter(_WEIGHTS[args.weights], pipeline_config(args), warn=False)
+    return _WorkerRetargeter(_WEIGHTS[args.weights], pipeline_config(args), warn=False)
 
 
 def _set_target(retargeter, args, points, faces, space):
     """``cli.set_target`` (``cli.target_of``'s target) with its skeleton and skinning weights
-    computed once per worker for each content, weights and refine (all they depend on)."""
-    key = (args.weights, not args.no_refine, _content_hash(points, faces))
+    computed once per worker for each content, weights, and the pipeline's ``refine`` and
+    ``mirror_target`` (all they depend on; a pair's ``preset`` sets both)."""
+    content = _content_hash(points, faces)
+    config = retargeter.config
+    key = (args.weights, config.refine, config.mirror_target, content)
     set_target(retargeter, points, faces, args.target, space, *_TARGETS.get(key, (None, None)))
     _TARGETS[key] = retargeter.target.tpose_joints, retargeter.target.skin_weights
+    retargeter.warm_key = args.weights, content
 
 
 def _reporting(open_at, name):
@@ -536,6 +569,8 @@ def run_pair(pair):
                 # A checkpoint: the pair was cut short (a killed worker or batch), go on from
                 # it; else any files there are a killed run's from before its first checkpoint.
                 resume = CHECKPOINT in previous_outputs(folder)
+                for stale in folder.glob(f".{DONE}.*.tmp"):     # a kill while marking it done
+                    stale.unlink(missing_ok=True)
                 retarget_to_files(retargeter, _reporting(open_at, pair.name), folder, formats,
                                   make_space(args.out_units, args.out_up), settings,
                                   resume=resume, overwrite=not resume, progress=False)
@@ -601,8 +636,10 @@ def schedule(pairs, slots, submit, lost, drain):
 
 def _target_key(pair):
     """What a worker's set-up of a pair's target depends on (``_set_target``'s key, the
-    target named instead of hashed)."""
-    return pair.target, pair.options["weights"], pair.options["refine"]
+    target named instead of hashed, the pipeline's ``refine`` and ``mirror_target`` told by
+    its options)."""
+    return (pair.target, pair.options["weights"], pair.options["refine"],
+            pair.options.get("preset"))
 
 
 def _pick(waiting, held, index):

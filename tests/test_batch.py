@@ -16,7 +16,10 @@ import pytest
 
 from conftest import GOLDEN
 from minretarget import batch, cli
+from minretarget.checkpoint import CHECKPOINT_EVERY
 from minretarget.formats.mesh import write_mesh
+from minretarget.outputs import frame_name
+from minretarget.retargeter import Retargeter
 
 trimesh = pytest.importorskip("trimesh")
 WEIGHTS = str(GOLDEN / "tiny_weights.npz")
@@ -60,10 +63,11 @@ def files(folder):
             if p.is_file() and p.name not in (batch.SUMMARY, batch.DONE)}
 
 
-def retarget(source, target, out):
-    """`minretarget retarget SOURCE TARGET --out OUT` with OPTIONS' options."""
+def retarget(source, target, out, *extra):
+    """`minretarget retarget SOURCE TARGET --out OUT` with OPTIONS' options (and ``extra``)."""
     assert cli.main(["retarget", str(source), str(target), "--out", str(out), "--format",
-                     OPTIONS["format"], "--points", str(SUBSET), "--weights", WEIGHTS]) == 0
+                     OPTIONS["format"], "--points", str(SUBSET), "--weights", WEIGHTS,
+                     *extra]) == 0
 
 
 @pytest.fixture(scope="module")
@@ -219,6 +223,66 @@ def test_a_target_handed_out_runs_as_one_read_by_the_worker(library, reference, 
     assert failed["status"] == "failed" and "gone.ply" in failed["error"]
 
 
+def test_a_worker_warms_up_once_per_target_and_pipeline(library, reference, tmp_path,
+                                                       monkeypatch):
+    """``retarget_to_files`` warms up every stream; a worker does it once per target and
+    pipeline, and gives the later pairs the first one's warnings (the tiny weights' fit finds
+    no body in these targets' points: a warning for each of the warm-up's two frames), so
+    that each pair's files and summary entry are those of a worker warming up for it."""
+    warmed = []
+    real = Retargeter.warm_up
+    monkeypatch.setattr(Retargeter, "warm_up", lambda self, skeleton=False: (
+        warmed.append(self.target.points.shape), real(self, skeleton))[1])
+    monkeypatch.setattr(batch, "_WARMED", {})
+    pairs = {p.name: p for p in batch.read_job(write_job(library), tmp_path / "job")}
+    entries = {name: batch.run_pair(pairs[name]._replace(folder=str(tmp_path / "a" / name)))
+               for name in ("slim/long", "slim/short", "wide/short")}
+    assert len(warmed) == 2                             # slim once, wide once
+    monkeypatch.setattr(batch, "_WARMED", {})           # a fresh worker for slim/short alone
+    alone = batch.run_pair(pairs["slim/short"]._replace(folder=str(tmp_path / "b")))
+    assert len(warmed) == 3
+    assert {**alone, "seconds": 0} == {**entries["slim/short"], "seconds": 0}
+    assert sum("frame 1: the source fit found no body" in w for w in alone["warnings"]) == 2
+    assert files(tmp_path / "a") == {k: v for k, v in reference.items()
+                                     if k.split("/")[1] != "long" or k.startswith("slim/")}
+
+
+def test_pairs_of_other_pipelines_on_one_target_run_as_retarget_does(library, tmp_path):
+    """A target's set-up (its skeleton, then its skinning weights) depends on the pipeline's
+    mirror_target: a worker that set it up for one preset's pair sets it up again for
+    another's, and each pair writes what `retarget --preset` writes."""
+    job = write_job(tmp_path, sources=[str(library / "motions" / "long.npy"),
+                                       str(library / "motions" / "short.npy")],
+                    targets=[str(library / "slim.ply")],
+                    pairs=[{"source": "long", "target": "slim",
+                            "options": {"preset": "paper"}},
+                           {"source": "short", "target": "slim"}])
+    summary = batch.run_batch(job, tmp_path / "out", workers=1, progress=False)
+    assert [(e["pair"], e["options"]["preset"]) for e in summary["pairs"]] == [
+        ("slim/long", "paper"), ("slim/short", "default")]
+    retarget(library / "motions" / "long.npy", library / "slim.ply",
+             tmp_path / "single" / "slim" / "long", "--preset", "paper")
+    retarget(library / "motions" / "short.npy", library / "slim.ply",
+             tmp_path / "single" / "slim" / "short")
+    assert files(tmp_path / "out") == files(tmp_path / "single")
+
+
+def test_a_kill_while_a_pair_is_marked_done_leaves_nothing_behind(library, reference,
+                                                                   tmp_path):
+    """A worker killed while it wrote a pair's done-marker leaves the marker's temporary file
+    and no marker: the pair runs again, and the temporary goes."""
+    job = write_job(tmp_path, sources=[str(library / "motions" / "short.npy")],
+                    targets=[str(library / "wide.ply")])
+    out = tmp_path / "out"
+    batch.run_batch(job, out, workers=1, progress=False)
+    (out / "wide" / "short" / batch.DONE).unlink()
+    (out / "wide" / "short" / f".{batch.DONE}.0123456789ab.tmp").write_text('{"pair"')
+    summary = batch.run_batch(job, out, workers=1, resume=True, progress=False)
+    assert summary["done"] == 1 and summary["skipped"] == 0
+    assert (out / "wide" / "short" / batch.DONE).is_file()
+    assert files(out) == {k: v for k, v in reference.items() if k.startswith("wide/short/")}
+
+
 def test_a_failing_pair_does_not_stop_the_others(library, reference, tmp_path, capsys):
     clouds = walk(20, 1)
     clouds[5, 3] = np.nan
@@ -273,10 +337,24 @@ def wait_for(path, process, seconds=120):
         time.sleep(0.01)
 
 
+def running(pid):
+    """Whether process ``pid`` still runs: not gone, nor a zombie (dead, its exit status not
+    yet collected: the init process that adopts a dead batch's workers here collects it up
+    to 2 s later)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")
+
+
+AFTER_CHECKPOINT = frame_name(CHECKPOINT_EVERY, "ply")   # its file: the checkpoint is saved
+
+
 def test_a_killed_worker_is_replaced_and_its_pair_resumed(library, local_run, tmp_path):
     out = tmp_path / "out"
     process = start_batch(write_job(library), out, "--workers", "2")
-    wait_for(out / "slim" / "long" / "frame_000040.ply", process)     # after a checkpoint
+    wait_for(out / "slim" / "long" / AFTER_CHECKPOINT, process)
     os.kill(worker_pids(process.pid)[0], signal.SIGKILL)
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 0, stderr
@@ -288,12 +366,13 @@ def test_a_killed_worker_is_replaced_and_its_pair_resumed(library, local_run, tm
 def test_a_killed_batch_resumes_without_redoing_finished_pairs(library, local_run, tmp_path):
     out = tmp_path / "out"
     process = start_batch(write_job(library), out, "--workers", "1")
-    wait_for(out / "wide" / "long" / "frame_000040.ply", process)     # slim/long is done
+    wait_for(out / "wide" / "long" / AFTER_CHECKPOINT, process)       # slim/long is done
     workers = worker_pids(process.pid)
     process.kill()
     process.communicate(timeout=60)
+    assert not (out / "wide" / "long" / batch.DONE).exists(), "killed too late: wide/long done"
     deadline = time.monotonic() + 10                  # its workers die with it
-    while any(Path(f"/proc/{pid}").exists() for pid in workers):
+    while any(running(pid) for pid in workers):
         assert time.monotonic() < deadline
         time.sleep(0.01)
     finished = (out / "slim" / "long" / batch.DONE).stat().st_mtime_ns
