@@ -393,7 +393,7 @@ def _quietly(read, args):
 _WEIGHTS = {}      # weights path (None: the shipped ones) -> Weights, loaded once per worker
 _TARGETS = {}      # (weights path, refine, mirror_target, target content hash)
                    # -> (tpose_joints, skin_weights)
-_WARMED = {}       # (weights path, target hash, config, skeleton) -> the warm-up's warnings
+_WARMED = set()    # (weights path, target hash, config, skeleton) of the warm-ups done
 _REPORT = [None]   # report((pair name, frames done)) to the batch, or None
 
 
@@ -433,9 +433,8 @@ class _WorkerRetargeter(Retargeter):
     target, pipeline and kind of source. ``cli.retarget_to_files`` warms up every stream: it
     loads the kernels (``minretarget retarget`` pays that once, in its one stream), then
     retargets two frames of the target's own points, which change nothing after the stream's
-    restart (``Retargeter.reset``) but the warnings given (a source fit that finds no body in
-    them); the later pairs get the first one's warnings again and skip those two frames
-    (with the ``fitted`` preset, 0.07 - 0.10 s of each pair: docs/batch.md)."""
+    restart (``Retargeter.reset``); the later pairs skip those two frames (with the
+    ``fitted`` preset, 0.07 - 0.10 s of each pair: docs/batch.md)."""
 
     warm_key = None          # (weights path, target content hash), set by ``_set_target``
 
@@ -446,12 +445,8 @@ class _WorkerRetargeter(Retargeter):
         if key in _WARMED:
             self.reset()                    # where warm_up leaves the stream: at its start
         else:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                super().warm_up(skeleton)
-            _WARMED[key] = [warning.message for warning in caught]
-        for message in _WARMED[key]:
-            warnings.warn(message, stacklevel=2)
+            super().warm_up(skeleton)
+            _WARMED.add(key)
         return None
 
 

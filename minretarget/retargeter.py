@@ -160,13 +160,16 @@ class Retargeter:
         this retargeter's settings, or load them from numba's on-disk cache, by retargeting
         two frames of the target's own points (about 1,000 of them; or its T-pose joints);
         then restart the stream. Takes milliseconds with a warm cache, about 30 s with a cold
-        one: call it before timing or showing progress."""
+        one: call it before timing or showing progress. Those frames are not the source's:
+        the source fit does not warn of them."""
         self._require_target("warm_up")
         points = None if skeleton else np.ascontiguousarray(                  # (~1024, 3)
             self.target.points[::max(1, len(self.target.points) // 1024)])
         joints = self.target.tpose_joints if skeleton else None
+        quiet = build_stages(self.weights, self._config, self.target,
+                             self._reader(self._config.mirror_source), warn=False)
         for _ in range(2):
-            self._step(points, joints)
+            self._fold(Frame(self._frame(), points, joints), quiet)
         self.reset()
 
     @property

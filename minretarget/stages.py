@@ -147,8 +147,8 @@ class SourceFit(Stage):
     name = "source_fit"
     State = FitState
 
-    def __init__(self, settings):
-        self.settings = settings
+    def __init__(self, settings, warn=True):
+        self.settings, self.warn = settings, warn
 
     def step(self, state, frame):
         if frame.points is None:
@@ -158,7 +158,7 @@ class SourceFit(Stage):
         else:
             state, joints, _ = fit_frame(body_model(), self.settings, state, frame.points,
                                          frame.joints)
-        if state.cost > LOST_COST:
+        if state.cost > LOST_COST and self.warn:
             warnings.warn(f"frame {frame.index}: the source fit found no body in this cloud "
                           f"(mean distance {100 * state.cost:.1f} cm); it holds the last "
                           "frame's pose until the body is back", FitWarning, stacklevel=5)
@@ -289,18 +289,18 @@ class Skinning(Stage):
         return linear_blend_skinning(target.points, target.skin_weights, transforms)
 
 
-def build_stages(weights, config, target, reading):
+def build_stages(weights, config, target, reading, warn=True):
     """The stages ``config`` asks for with ``weights``, for ``target`` (a
     ``retargeter.Target``), in order: a tuple. ``reading``: the SKR stage (a ``Reading``
     with the config's ``refine`` and ``mirror_source``), which the facing check reads with
-    too."""
+    too. ``warn``: the source fit warns of a cloud it finds no body in."""
     denoiser = weights.denoise if config.denoise else None
     rest_pose = weights.rest_pose if config.rest_pose else None
     tpose = target.tpose_joints
     stages = [Thinning(config.cloud_points) if config.cloud_points is not None else None,
               reading,
               FacingCheck(reading) if config.facing_check else None,
-              SourceFit(config.fit_source) if config.fit_source is not None else None,
+              SourceFit(config.fit_source, warn) if config.fit_source is not None else None,
               JointSmoothing(config.smoothing) if config.smoothing is not None else None,
               Denoising(denoiser) if denoiser is not None else None,
               Retargeting(weights.smrm, tpose, rest_pose),

@@ -383,3 +383,24 @@ def test_a_body_that_jumps_away_is_found_again_the_next_frame():
         truth = [moved.step(cloud + jump) for cloud in clouds][-1].source_joints
     assert lost in ([], [4]), lost
     assert np.linalg.norm(frames[-1].source_joints - truth, axis=1).mean() < 0.03
+
+
+def test_warm_up_does_not_warn_of_its_own_frames(tiny_weights, tiny_stream):
+    """warm_up retargets two frames of the target's own points: a source fit that finds no
+    body in them (random weights read no skeleton) must not warn of frames the caller never
+    gave; the same points given to step do warn."""
+    import warnings
+    from minretarget.retargeter import Retargeter
+    from minretarget.validation import FitWarning
+    target = tiny_stream[0]
+    retargeter = Retargeter(tiny_weights, "fitted", warn=False)
+    retargeter.set_target(target)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        retargeter.warm_up()
+    assert not [w for w in caught if issubclass(w.category, FitWarning)]
+    assert retargeter.state is None
+    points = np.ascontiguousarray(target[::max(1, len(target) // 1024)])
+    with pytest.warns(FitWarning, match="frame 1: the source fit found no body"):
+        for _ in range(2):
+            retargeter.step(points)
