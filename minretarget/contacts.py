@@ -45,7 +45,8 @@ from .conventions import FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS, UP_AXIS
 from .kinematics import _PARENTS, _place_joint, check_quaternion_norms, forward_kinematics
 from .validation import as_float32_array
 
-_LEFT = np.eye(3)[LEFT_AXIS]     # the T-pose's left axis, about which knees flex
+_LEFT = tuple(float(v) for v in np.eye(3)[LEFT_AXIS])  # the T-pose's left axis: knees flex
+#                                                         about it
 # Per leg: hip, knee, ankle, toe; legs in order left, right.
 LEGS = np.array([[JOINT_INDEX[f"{side}_{name}"] for name in ("hip", "knee", "ankle", "foot")]
                  for side in ("left", "right")], dtype=np.int64)
@@ -151,6 +152,8 @@ def plant_checked(rotations, joints, global_rotations, tpose_joints, state, foot
 
 
 # ----------------------------------------------------------------------------- quaternions
+# Quaternions (w, x, y, z) and vectors as float64 tuples: numba compiles tuple arithmetic much
+# faster than the small arrays it would otherwise build for each (issue 40's cold start).
 
 @kernel
 def _smoothing_factor(cutoff):
@@ -161,42 +164,81 @@ def _smoothing_factor(cutoff):
 
 @kernel
 def _multiply(a, b):
-    """Hamilton product a * b of (4,) quaternions (w, x, y, z)."""
-    return np.array([a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-                     a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-                     a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-                     a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0]], dtype=np.float64)
+    """Hamilton product a * b of quaternions."""
+    return (a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+            a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+            a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+            a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0])
 
 
 @kernel
 def _conjugate(q):
-    return np.array([q[0], -q[1], -q[2], -q[3]], dtype=np.float64)
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+@kernel
+def _quaternion(rotations, j):
+    """Row j of (J, 4) float32 quaternions as a float64 tuple."""
+    return (np.float64(rotations[j, 0]), np.float64(rotations[j, 1]),
+            np.float64(rotations[j, 2]), np.float64(rotations[j, 3]))
+
+
+@kernel
+def _row(points, j):
+    """Row j of (J, 3) float64 points as a tuple."""
+    return (points[j, 0], points[j, 1], points[j, 2])
+
+
+@kernel
+def _add(u, v):
+    return (u[0] + v[0], u[1] + v[1], u[2] + v[2])
+
+
+@kernel
+def _sub(u, v):
+    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+
+@kernel
+def _scale(u, k):
+    return (k * u[0], k * u[1], k * u[2])
+
+
+@kernel
+def _dot(u, v):
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+@kernel
+def _cross(u, v):
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
 
 
 @kernel
 def _rotate(q, v):
-    """The (3,) vector v rotated by the unit quaternion q."""
-    return _multiply(_multiply(q, np.array([0.0, v[0], v[1], v[2]])), _conjugate(q))[1:]
+    """The vector v rotated by the unit quaternion q."""
+    turned = _multiply(_multiply(q, (0.0, v[0], v[1], v[2])), _conjugate(q))
+    return (turned[1], turned[2], turned[3])
 
 
 @kernel
 def _axis_angle(axis, angle):
-    """Unit quaternion of the turn by ``angle`` (radians) about the (3,) ``axis`` (any length)."""
-    axis = axis / np.sqrt(np.sum(axis * axis))
+    """Unit quaternion of the turn by ``angle`` (radians) about ``axis`` (any length)."""
+    norm = np.sqrt(_dot(axis, axis))
     s = np.sin(0.5 * angle)
-    return np.array([np.cos(0.5 * angle), s * axis[0], s * axis[1], s * axis[2]])
+    return (np.cos(0.5 * angle), s * (axis[0] / norm), s * (axis[1] / norm), s * (axis[2] / norm))
 
 
 @kernel
 def _turn_between(u, v):
-    """Unit quaternion of the smallest turn taking direction u to direction v (both (3,))."""
-    u = u / np.sqrt(np.sum(u * u))
-    v = v / np.sqrt(np.sum(v * v))
-    axis = np.cross(u, v)
-    sine = np.sqrt(np.sum(axis * axis))
+    """Unit quaternion of the smallest turn taking direction u to direction v."""
+    u = _scale(u, 1.0 / np.sqrt(_dot(u, u)))
+    v = _scale(v, 1.0 / np.sqrt(_dot(v, v)))
+    axis = _cross(u, v)
+    sine = np.sqrt(_dot(axis, axis))
     if sine < 1e-9:     # parallel (no turn); opposite cannot happen for a leg's small offsets
-        return np.array([1.0, 0.0, 0.0, 0.0])
-    return _axis_angle(axis, np.arctan2(sine, np.sum(u * v)))
+        return (1.0, 0.0, 0.0, 0.0)
+    return _axis_angle(axis, np.arctan2(sine, _dot(u, v)))
 
 
 # ----------------------------------------------------------------------------- the stage
@@ -207,33 +249,34 @@ def _bend_leg(rotations, joints, global_pelvis, leg, goal):
     near as the bone lengths allow), keeping the ankle's world orientation.
 
     rotations (J, 4) local quaternions, float32, changed in place; joints (J, 3) float64 the
-    pose's joints; global_pelvis (4,) float64; leg (4,) hip, knee, ankle, toe; goal (3,)."""
+    pose's joints; global_pelvis a quaternion; leg (4,) hip, knee, ankle, toe; goal a vector."""
     hip, knee, ankle = leg[0], leg[1], leg[2]
-    global_hip = _multiply(global_pelvis, rotations[hip].astype(np.float64))
-    global_knee = _multiply(global_hip, rotations[knee].astype(np.float64))
-    thigh, shank = joints[knee] - joints[hip], joints[ankle] - joints[knee]
-    thigh_length = np.sqrt(np.sum(thigh * thigh))
-    shank_length = np.sqrt(np.sum(shank * shank))
-    reach = np.sqrt(np.sum((goal - joints[hip]) ** 2))
+    global_hip = _multiply(global_pelvis, _quaternion(rotations, hip))
+    global_knee = _multiply(global_hip, _quaternion(rotations, knee))
+    hip_at, knee_at = _row(joints, hip), _row(joints, knee)
+    thigh, shank = _sub(knee_at, hip_at), _sub(_row(joints, ankle), knee_at)
+    thigh_length = np.sqrt(_dot(thigh, thigh))
+    shank_length = np.sqrt(_dot(shank, shank))
+    to_goal = _sub(goal, hip_at)
+    reach = np.sqrt(_dot(to_goal, to_goal))
     # 1. Bend the knee about its hinge, the T-pose's left axis carried by the thigh (a knee
     #    flexes about it whatever the skeleton's rest bend), by the angle t whose hip-ankle
     #    distance is the reach: with the shank v = v_along + v_across about the hinge n,
     #    |thigh + v(t)|^2 = reach^2 gives A cos t + B sin t = C (A = thigh . v_across,
     #    B = thigh . (n x v_across)). Of its two roots, the smaller turn that does not bend
     #    the knee backwards.
-    hinge = _rotate(global_hip, _LEFT.copy())      # a copy: the constant is read-only, and
-    #                                                  a second type compiles _rotate again
-    along = np.sum(shank * hinge) * hinge
-    across = shank - along
-    a = np.sum(thigh * across)
-    b = np.sum(thigh * np.cross(hinge, across))
-    c = 0.5 * (reach ** 2 - thigh_length ** 2 - shank_length ** 2) - np.sum(thigh * along)
+    hinge = _rotate(global_hip, _LEFT)
+    along = _scale(hinge, _dot(shank, hinge))
+    across = _sub(shank, along)
+    a = _dot(thigh, across)
+    b = _dot(thigh, _cross(hinge, across))
+    c = 0.5 * (reach ** 2 - thigh_length ** 2 - shank_length ** 2) - _dot(thigh, along)
     radius = np.sqrt(a * a + b * b)
     turn = 0.0
     if radius > 1e-9:
         phase = np.arctan2(b, a)
         spread = np.arccos(min(max(c / radius, -1.0), 1.0))     # the nearest when unreachable
-        flexion = np.arctan2(np.sum(np.cross(thigh, shank) * hinge), np.sum(thigh * shank))
+        flexion = np.arctan2(_dot(_cross(thigh, shank), hinge), _dot(thigh, shank))
         best = np.inf
         for root in (phase - spread, phase + spread):
             root = (root + np.pi) % (2 * np.pi) - np.pi           # into [-pi, pi)
@@ -241,17 +284,26 @@ def _bend_leg(rotations, joints, global_pelvis, leg, goal):
             if cost < best:
                 best, turn = cost, root
     knee_turn = _axis_angle(hinge, turn)
-    ankle_bent = joints[knee] + _rotate(knee_turn, shank)
+    ankle_bent = _add(knee_at, _rotate(knee_turn, shank))
     # 2. Swing the whole leg about the hip so that the ankle points at the goal.
-    hip_turn = _turn_between(ankle_bent - joints[hip], goal - joints[hip])
+    hip_turn = _turn_between(_sub(ankle_bent, hip_at), to_goal)
     # World turns -> local rotations: hip' = P^-1 D2 P hip, knee' = H^-1 D1 H knee,
     # ankle' = K^-1 (D2 D1)^-1 K ankle (P, H, K: old global pelvis, hip, knee).
-    for joint, frame, turn in ((hip, global_pelvis, hip_turn), (knee, global_hip, knee_turn),
-                               (ankle, global_knee,
-                                _conjugate(_multiply(hip_turn, knee_turn)))):
-        local = _multiply(_multiply(_multiply(_conjugate(frame), turn), frame),
-                          rotations[joint].astype(np.float64))
-        rotations[joint] = (local / np.sqrt(np.sum(local * local))).astype(np.float32)
+    _turn_local(rotations, hip, global_pelvis, hip_turn)
+    _turn_local(rotations, knee, global_hip, knee_turn)
+    _turn_local(rotations, ankle, global_knee, _conjugate(_multiply(hip_turn, knee_turn)))
+
+
+@kernel
+def _turn_local(rotations, joint, frame, turn):
+    """Joint's local rotation turned by the world turn ``turn`` given its parent's old world
+    rotation ``frame``: frame^-1 turn frame local, normalised, in place."""
+    local = _multiply(_multiply(_multiply(_conjugate(frame), turn), frame),
+                      _quaternion(rotations, joint))
+    norm = np.sqrt(local[0] * local[0] + local[1] * local[1] + local[2] * local[2]
+                   + local[3] * local[3])
+    for k in range(4):
+        rotations[joint, k] = np.float32(local[k] / norm)
 
 
 @kernel
@@ -271,7 +323,7 @@ def _plant_feet_kernel(rotations, posed, global_rotations, tpose, parents, legs,
     offset = foot_offset.astype(np.float64)
     planted = feet_planted.copy()
     out = rotations.copy()
-    global_pelvis = rotations[0].astype(np.float64)
+    global_pelvis = _quaternion(rotations, 0)
     for side in range(2):
         speed = 0.0 if first else np.sqrt(np.sum((filtered[side] - toe_filtered[side]) ** 2)) * FPS
         low = toes[side, UP_AXIS] <= toes[1 - side, UP_AXIS] + height_margin
@@ -292,8 +344,10 @@ def _plant_feet_kernel(rotations, posed, global_rotations, tpose, parents, legs,
         else:
             offset[side] = release_decay * offset[side]
         if np.sqrt(np.sum(offset[side] ** 2)) > 1e-5:       # under 0.01 mm: leave the leg
+            ankle = legs[side, 2]
             _bend_leg(out, joints, global_pelvis, legs[side],
-                      joints[legs[side, 2]] + offset[side])
+                      (joints[ankle, 0] + offset[side, 0], joints[ankle, 1] + offset[side, 1],
+                       joints[ankle, 2] + offset[side, 2]))
             local = np.empty((3, 3), dtype=np.float32)
             for j in legs[side]:                             # hip, knee, ankle, toe: a chain
                 _place_joint(out, tpose, parents, posed, global_rotations, j, local)
