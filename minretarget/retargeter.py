@@ -90,12 +90,16 @@ class Retargeter:
 
     def _build(self):
         """The stage list for the config and target; states of stages gone are dropped."""
-        self._stages = () if self.target is None else build_stages(
-            self.weights, self._config, self.target, self._reader(self._config.mirror_source))
+        self._stages = () if self.target is None else self._stage_list()
         if self._state is not None:
             names = {stage.name for stage in self._stages}
             self._state = self._state._replace(stages={
                 name: value for name, value in self._state.stages.items() if name in names})
+
+    def _stage_list(self, warn=True):
+        """``stages.build_stages`` for this retargeter's weights, config and target."""
+        return build_stages(self.weights, self._config, self.target,
+                            self._reader(self._config.mirror_source), warn)
 
     def set_target(self, points: ArrayLike, faces: ArrayLike | None = None,
                    tpose_joints: ArrayLike | None = None,
@@ -166,8 +170,7 @@ class Retargeter:
         points = None if skeleton else np.ascontiguousarray(                  # (~1024, 3)
             self.target.points[::max(1, len(self.target.points) // 1024)])
         joints = self.target.tpose_joints if skeleton else None
-        quiet = build_stages(self.weights, self._config, self.target,
-                             self._reader(self._config.mirror_source), warn=False)
+        quiet = self._stage_list(warn=False)
         for _ in range(2):
             self._fold(Frame(self._frame(), points, joints), quiet)
         self.reset()

@@ -63,6 +63,7 @@ class Stage:
     name = ""
     version = 1
     State = None
+    every_frame = True      # its state exists after every frame (not only after some)
 
     def step(self, state, frame):
         raise NotImplementedError
@@ -137,15 +138,13 @@ class FacingCheck(Stage):
     def checked(self, state):
         return check_facing_state(state)
 
-    def from_arrays(self, arrays):
-        return self.checked(FacingState(float(arrays["reference"]), int(arrays["away_frames"])))
-
 
 class SourceFit(Stage):
     """Stage 1e: the calibrated body model tracked in the cloud; its joints replace the
     reading (``fit``). A frame without a cloud is left as it is."""
     name = "source_fit"
     State = FitState
+    every_frame = False     # it runs on frames with a cloud only
 
     def __init__(self, settings, warn=True):
         self.settings, self.warn = settings, warn
@@ -231,10 +230,6 @@ class Retargeting(Stage):
 
     def checked(self, state):
         return check_smrm_state(self.weights, state)
-
-    def from_arrays(self, arrays):
-        return self.checked(SMRMState(**{name: arrays[name] for name in SMRMState._fields[:-1]},
-                                      frames_seen=int(arrays["frames_seen"])))
 
 
 class Posing(Stage):
@@ -330,7 +325,7 @@ def check_stream_state(stages, state):
     for name, stage in keeping.items():
         value = state.stages.get(name)
         if value is None:
-            if frames and name != "source_fit":     # the fit runs only on frames with clouds
+            if frames and stage.every_frame:
                 raise ValueError(f"state has no {name} state after {frames} frames (a state "
                                  "from another config)")
             continue

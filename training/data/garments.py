@@ -216,6 +216,12 @@ def vertex_segments(weights):
     return np.argmax(np.asarray(weights), axis=1)
 
 
+def _height(joints, *names):
+    """The named joints' mean height above the pelvis joint, metres ((J, 3) float64 joints)."""
+    return (joints[list(_joints(*names)), UP_AXIS].mean()
+            - joints[JOINT_INDEX["pelvis"], UP_AXIS])
+
+
 def fit_skirt(tpose_vertices, tpose_joints, weights, margin=SKIRT_MARGIN, flare=SKIRT_FLARE,
               hem=SKIRT_HEM):
     """A loose skirt for one body, measured on its T-pose.
@@ -232,10 +238,9 @@ def fit_skirt(tpose_vertices, tpose_joints, weights, margin=SKIRT_MARGIN, flare=
         ``knee + hem * (ankle - knee)`` (heights, the two legs' mean), hiding ``LOWER_BODY``.
     """
     joints = np.asarray(tpose_joints, np.float64)
-    pelvis = joints[JOINT_INDEX["pelvis"], UP_AXIS]
-    top = joints[JOINT_INDEX["spine1"], UP_AXIS] - pelvis
-    knee = joints[list(_joints("left_knee", "right_knee")), UP_AXIS].mean() - pelvis
-    ankle = joints[list(_joints("left_ankle", "right_ankle")), UP_AXIS].mean() - pelvis
+    top = _height(joints, "spine1")
+    knee, ankle = _height(joints, "left_knee", "right_knee"), _height(joints, "left_ankle",
+                                                                      "right_ankle")
     cone = _lower_body_cone(tpose_vertices, joints, vertex_segments(weights), top,
                             knee + hem * (ankle - knee), margin, flare)
     return Garment("skirt", cone, LOWER_BODY)
@@ -257,10 +262,9 @@ def fit_coat(tpose_vertices, tpose_joints, weights, offset=COAT_OFFSET, flare=CO
         ``LOWER_BODY`` inside it.
     """
     joints = np.asarray(tpose_joints, np.float64)
-    pelvis = joints[JOINT_INDEX["pelvis"], UP_AXIS]
-    top = joints[JOINT_INDEX["spine1"], UP_AXIS] - pelvis
-    hip = joints[list(_joints("left_hip", "right_hip")), UP_AXIS].mean() - pelvis
-    knee = joints[list(_joints("left_knee", "right_knee")), UP_AXIS].mean() - pelvis
+    top = _height(joints, "spine1")
+    hip, knee = _height(joints, "left_hip", "right_hip"), _height(joints, "left_knee",
+                                                                  "right_knee")
     cone = _lower_body_cone(tpose_vertices, joints, vertex_segments(weights), top,
                             hip + hem * (knee - hip), offset, flare)
     return Garment("coat", cone, LOWER_BODY, COAT_SHELL if sleeves else COAT_SHELL_NO_SLEEVES,
