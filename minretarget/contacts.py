@@ -313,43 +313,70 @@ def _plant_feet_kernel(rotations, posed, global_rotations, tpose, parents, legs,
     """-> rotations, and the FeetState's four fields; ``posed`` (J, 3) and
     ``global_rotations`` (J, 3, 3), the FK of ``rotations``, are placed again along the legs
     it bends."""
-    joints = posed.astype(np.float64)
-    toes = np.empty((2, 3))
-    for side in range(2):
-        toes[side] = joints[legs[side, 3]]
+    # Scalar loops into float64 scratch, not array expressions, copies or row assignments:
+    # numba compiles those (and their shape checks' error messages) slowly (issue 40).
+    joints = np.empty((posed.shape[0], 3))
+    for j in range(posed.shape[0]):
+        for k in range(3):
+            joints[j, k] = posed[j, k]
     a = np.float64(_smoothing_factor(np.float32(speed_cutoff)))
-    filtered = toes.copy() if first else toe_filtered + a * (toes - toe_filtered)
-    anchor = toe_anchor.astype(np.float64)
-    offset = foot_offset.astype(np.float64)
-    planted = feet_planted.copy()
-    out = rotations.copy()
+    toes, filtered = np.empty((2, 3)), np.empty((2, 3))
+    anchor, offset = np.empty((2, 3)), np.empty((2, 3))
+    for side in range(2):
+        for k in range(3):
+            toes[side, k] = joints[legs[side, 3], k]
+            filtered[side, k] = toes[side, k] if first else (
+                toe_filtered[side, k] + a * (toes[side, k] - toe_filtered[side, k]))
+            anchor[side, k] = toe_anchor[side, k]
+            offset[side, k] = foot_offset[side, k]
+    planted = np.empty(2, dtype=np.bool_)
+    out = np.empty((rotations.shape[0], 4), dtype=np.float32)
+    for j in range(rotations.shape[0]):
+        for k in range(4):
+            out[j, k] = rotations[j, k]
     global_pelvis = _quaternion(rotations, 0)
     for side in range(2):
-        speed = 0.0 if first else np.sqrt(np.sum((filtered[side] - toe_filtered[side]) ** 2)) * FPS
+        planted[side] = feet_planted[side]
+        moved = _sub(_row(filtered, side), (np.float64(toe_filtered[side, 0]),
+                                            np.float64(toe_filtered[side, 1]),
+                                            np.float64(toe_filtered[side, 2])))
+        speed = 0.0 if first else np.sqrt(_dot(moved, moved)) * FPS
         low = toes[side, UP_AXIS] <= toes[1 - side, UP_AXIS] + height_margin
         if planted[side]:
             planted[side] = low and speed <= lift_speed
         elif not first and low and speed < plant_speed:
             planted[side] = True
-            anchor[side] = toes[side] + offset[side]     # where the toe is shown: no jump
+            for k in range(3):                           # where the toe is shown: no jump
+                anchor[side, k] = toes[side, k] + offset[side, k]
         if planted[side]:
-            anchor[side] = anchor[side] + anchor_follow * (filtered[side] - anchor[side])
+            for k in range(3):
+                anchor[side, k] = anchor[side, k] + anchor_follow * (filtered[side, k]
+                                                                     - anchor[side, k])
             anchor[side, UP_AXIS] = toes[side, UP_AXIS]  # held over the ground only: the height
             #                                             stays SMRM's (the creep's is dropped)
-            gap = anchor[side] - toes[side]
-            distance = np.sqrt(np.sum(gap * gap))
+            gap = _sub(_row(anchor, side), _row(toes, side))
+            distance = np.sqrt(_dot(gap, gap))
             if distance > max_offset:                    # the leash: dragged, not dropped
-                anchor[side] = toes[side] + gap * (max_offset / distance)
-            offset[side] = anchor[side] - toes[side]
+                for k in range(3):
+                    anchor[side, k] = toes[side, k] + gap[k] * (max_offset / distance)
+            for k in range(3):
+                offset[side, k] = anchor[side, k] - toes[side, k]
         else:
-            offset[side] = release_decay * offset[side]
-        if np.sqrt(np.sum(offset[side] ** 2)) > 1e-5:       # under 0.01 mm: leave the leg
+            for k in range(3):
+                offset[side, k] = release_decay * offset[side, k]
+        shift = _row(offset, side)
+        if np.sqrt(_dot(shift, shift)) > 1e-5:           # under 0.01 mm: leave the leg
             ankle = legs[side, 2]
             _bend_leg(out, joints, global_pelvis, legs[side],
-                      (joints[ankle, 0] + offset[side, 0], joints[ankle, 1] + offset[side, 1],
-                       joints[ankle, 2] + offset[side, 2]))
+                      (joints[ankle, 0] + shift[0], joints[ankle, 1] + shift[1],
+                       joints[ankle, 2] + shift[2]))
             local = np.empty((3, 3), dtype=np.float32)
             for j in legs[side]:                             # hip, knee, ankle, toe: a chain
                 _place_joint(out, tpose, parents, posed, global_rotations, j, local)
-    return (out, filtered.astype(np.float32), anchor.astype(np.float32),
-            offset.astype(np.float32), planted)
+    feet = np.empty((3, 2, 3), dtype=np.float32)         # filtered, anchor, offset
+    for side in range(2):
+        for k in range(3):
+            feet[0, side, k] = filtered[side, k]
+            feet[1, side, k] = anchor[side, k]
+            feet[2, side, k] = offset[side, k]
+    return out, feet[0], feet[1], feet[2], planted

@@ -176,7 +176,8 @@ def _forward_kinematics_kernel(rotations, root, tpose, parents, joints, global_r
     local = np.empty((3, 3), dtype=np.float32)
     for n in range(rotations.shape[0]):
         _quaternion_to_matrix_one(rotations[n, 0], global_rotations[n, 0])
-        joints[n, 0] = root[n]
+        for a in range(3):
+            joints[n, 0, a] = root[n, a]
         for j in range(1, rotations.shape[1]):
             _place_joint(rotations[n], tpose[n], parents, joints[n], global_rotations[n], j,
                          local)

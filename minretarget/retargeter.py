@@ -13,6 +13,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from . import _compile_ahead
+from ._jit import on_first_compile
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics
 from .pipeline import PipelineConfig, as_config, check_pipeline
@@ -60,6 +62,7 @@ class Retargeter:
         self.warn = bool(warn)
         self.workers = as_workers(workers)
         self.target, self._state, self._stages = None, None, ()
+        self._compiler = None           # a second process compiling the later stages, if any
         self.config = config
         self.reset()
 
@@ -125,11 +128,14 @@ class Retargeter:
                 raise ValueError(f"faces index vertices outside [0, {len(points)})")
             # No triangles is a point cloud, as the file readers give it.
             faces = faces.astype(np.int64) if len(faces) else None
-        if tpose_joints is None:
-            tpose_joints = self._reader(self.config.mirror_target).read(points)
-        tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
-        if skin_weights is None:
-            skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
+        # A cold numba cache: the stages after the cloud's are compiled meanwhile in a
+        # second process (``_compile_ahead``), joined in ``_fold`` where they begin.
+        with on_first_compile(self._compile_ahead):
+            if tpose_joints is None:
+                tpose_joints = self._reader(self.config.mirror_target).read(points)
+            tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
+            if skin_weights is None:
+                skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
         skin_weights = as_float32_array(skin_weights, "skin_weights", (len(points), NUM_JOINTS))
         if (skin_weights < 0).any() or np.abs(skin_weights.sum(axis=1) - 1).max() > 1e-3:
             raise ValueError("skin_weights must be >= 0 and each row must sum to 1")
@@ -138,6 +144,10 @@ class Retargeter:
         self.target = Target(points, faces, tpose_joints, skin_weights)
         self.reset()
         self._build()
+
+    def _compile_ahead(self):
+        if self._compiler is None:
+            self._compiler = _compile_ahead.start(self._config)
 
     def reset(self) -> None:
         """Forget the motion seen so far (the target stays). The calling thread owns the new
@@ -226,6 +236,9 @@ class Retargeter:
         before = {} if self._state is None else self._state.stages
         after = {}
         for stage in stages:
+            if self._compiler is not None and not stage.reads_cloud:
+                _compile_ahead.join(self._compiler)
+                self._compiler = None
             state, frame = stage.step(before.get(stage.name), frame)
             if state is not None:
                 after[stage.name] = state

@@ -149,20 +149,29 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions,
     root = source_joints[0]
     lengths = np.empty_like(source_bone_lengths)
     _bone_lengths_kernel(source_joints, lengths)
-    source_bone_lengths += (lengths - source_bone_lengths) / np.float32(frames_seen + 1)
+    for b in range(lengths.shape[0]):
+        source_bone_lengths[b] += (lengths[b] - source_bone_lengths[b]) / np.float32(
+            frames_seen + 1)
     # 1-2. heading, and the features in the heading frame (turned by -heading)
     features, sin, cos = heading_features(source_joints, previous_root)
     # 3. encoder, then decoder over [encoded, T-pose relative to its root]
     encoded = gru_step(features, encoder_hidden, weights.encoder)       # (1, H)
-    decoder_input = np.empty((1, encoded.shape[1] + 3 * j), dtype=np.float32)
-    decoder_input[0, :encoded.shape[1]] = encoded[0]
-    decoder_input[0, encoded.shape[1]:] = (target_tpose - target_tpose[0]).ravel()
+    # (scalar loops, not slice assignments: those compile numba's shape-mismatch error)
+    width = encoded.shape[1]
+    decoder_input = np.empty((1, width + 3 * j), dtype=np.float32)
+    for i in range(width):
+        decoder_input[0, i] = encoded[0, i]
+    for k in range(j):
+        for a in range(3):
+            decoder_input[0, width + 3 * k + a] = target_tpose[k, a] - target_tpose[0, a]
     decoded = gru_step(decoder_input, decoder_hidden, weights.decoder)
     # 4. heads: unit quaternions and the root offset
     q = dense(decoded, weights.rotation_head, False).reshape(-1, 4)      # (J, 4)
     for k in range(q.shape[0]):
-        norm = np.sqrt(q[k, 0] ** 2 + q[k, 1] ** 2 + q[k, 2] ** 2 + q[k, 3] ** 2)
-        q[k] /= max(norm, np.float32(1e-8))
+        norm = max(np.sqrt(q[k, 0] ** 2 + q[k, 1] ** 2 + q[k, 2] ** 2 + q[k, 3] ** 2),
+                   np.float32(1e-8))
+        for a in range(4):
+            q[k, a] /= norm
     offset = dense(decoded, weights.root_head, False)[0]                # (3,)
     if weights.analytic_prior:   # 4'. each a correction after the analytic rotation, in its frame
         reference = target_tpose
@@ -172,8 +181,11 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions,
                                     reference)
         prior = np.empty((j, 4), dtype=np.float32)
         _analytic_frame(source_joints, reference, prior, np.empty((j, 3, 3)))
+        correction = np.empty(4, dtype=np.float32)
         for k in range(j):
-            _quaternion_multiply_one(prior[k], q[k].copy(), q[k])
+            for a in range(4):
+                correction[a] = q[k, a]
+            _quaternion_multiply_one(prior[k], correction, q[k])
     else:                # 5. root rotation turned by the heading (half angle: stable at pi)
         half = np.arctan2(sin, cos) / np.float32(2.0)
         hw, hy = np.cos(half), np.sin(half)

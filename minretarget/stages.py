@@ -64,6 +64,7 @@ class Stage:
     version = 1
     State = None
     every_frame = True      # its state exists after every frame (not only after some)
+    reads_cloud = False     # it works on the frame's cloud (the stages after these see joints)
 
     def step(self, state, frame):
         raise NotImplementedError
@@ -81,6 +82,7 @@ class Stage:
 class Thinning(Stage):
     """Stage 0: each cloud thinned to ``count`` points, a subset seeded by the frame's index."""
     name = "thinning"
+    reads_cloud = True
 
     def __init__(self, count):
         self.count = count
@@ -95,6 +97,7 @@ class Reading(Stage):
     """Stage 1: SKR's skeleton of the cloud, refined, mirror-averaged, as asked; a frame that
     comes with its skeleton (``Retargeter.step_skeleton``) keeps it."""
     name = "skr"
+    reads_cloud = True
 
     def __init__(self, weights, refine, mirrored, workers):
         self.weights, self.workers = weights, workers
@@ -122,6 +125,7 @@ class FacingCheck(Stage):
     """Stage 1d: a reading that faces away from the body's heading, read again half turned
     (``facing``)."""
     name = "facing_check"
+    reads_cloud = True
     State = FacingState
 
     def __init__(self, reading):
@@ -143,6 +147,7 @@ class SourceFit(Stage):
     """Stage 1e: the calibrated body model tracked in the cloud; its joints replace the
     reading (``fit``). A frame without a cloud is left as it is."""
     name = "source_fit"
+    reads_cloud = True
     State = FitState
     every_frame = False     # it runs on frames with a cloud only
 
