@@ -309,23 +309,30 @@ r = Retargeter.from_weights({weights!r}, {preset!r}, warn=False)
 rng = np.random.default_rng(0)
 cloud = lambda n: (rng.standard_normal((n, 3)) * [0.25, 0.45, 0.12] + [0, 0.9, 0])
 r.set_target(cloud(13718).astype(np.float32)); r.step(cloud(2048).astype(np.float32))
+import resource
+children = resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({{"import_s": imported - start,
                   "import_to_first_frame_s": time.perf_counter() - start,
-                  "cpu_s": time.process_time() - cpu_start, "kernels": kernels}}))
+                  "cpu_s": time.process_time() - cpu_start,
+                  "second_process_cpu_s": children.ru_utime + children.ru_stime,
+                  "kernels": kernels}}))
 """
 
 
-def first_frame(weights_path, preset, cache):
+def first_frame(weights_path, preset, cache, ahead=True):
     """One fresh process with numba's cache in ``cache``: import and total time (wall) to the
     first retargeted frame of ``preset`` (the weights and the first target included), its CPU
-    time (steadier than the wall time on a shared machine), the load average before it, and
-    what numba compiled: signatures, and the top kernels by CPU seconds of their own compile
-    (less the kernels and numba overloads compiled inside it)."""
+    time (steadier than the wall time on a shared machine) and that of the second process
+    that compiles the later stages meanwhile (``minretarget._compile_ahead``; ``ahead``
+    False: switched off, all in one process), the load average before it, and what numba
+    compiled in the first process: signatures, and the top kernels by CPU seconds of their
+    own compile (less the kernels and numba overloads compiled inside it)."""
     load = os.getloadavg()[0]
     result = subprocess.run(
         [sys.executable, "-c", COMPILE_SCRIPT.format(weights=weights_path, preset=preset)],
-        env={**os.environ, "NUMBA_CACHE_DIR": cache}, capture_output=True, text=True,
-        check=True)
+        env={**os.environ, "NUMBA_CACHE_DIR": cache,
+             "MINRETARGET_COMPILE_AHEAD": "1" if ahead else "0"},
+        capture_output=True, text=True, check=True)
     run = json.loads(result.stdout.splitlines()[-1])
     kernels = run.pop("kernels")
     top = sorted(kernels.items(), key=lambda item: -item[1][1])[:15]
@@ -336,20 +343,29 @@ def first_frame(weights_path, preset, cache):
 
 
 def compile_times(weights_path, preset="default", repeats=1):
-    """Numba's cold start (issue 40): ``repeats`` times, a fresh process with an empty cache,
-    then one from the cache it left (``first_frame`` each). "cold" and "warm" are the runs of
-    median wall time; "cold_runs" has every cold run's wall and CPU seconds and load."""
-    colds, warms = [], []
+    """Numba's cold start (issue 40): ``repeats`` times, a fresh process with an empty cache
+    (as a fresh install runs it: the later stages compiled in a second process), one with an
+    empty cache compiling everything itself, then one from the cache (``first_frame`` each).
+    "cold", "cold_one_process" and "warm" are the runs of median wall time; "cold_runs" has
+    every cold run's wall and CPU seconds and load."""
+    colds, singles, warms = [], [], []
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as cache:
             colds.append(first_frame(weights_path, preset, cache))
             warms.append(first_frame(weights_path, preset, cache))
+        with tempfile.TemporaryDirectory() as cache:
+            singles.append(first_frame(weights_path, preset, cache, ahead=False))
 
     def median(runs):
         return sorted(runs, key=lambda run: run["import_to_first_frame_s"])[len(runs) // 2]
-    return {"preset": preset, "cold": median(colds), "warm": median(warms),
-            "cold_runs": [{key: run[key] for key in ("import_to_first_frame_s", "cpu_s",
-                                                      "load_average_before")} for run in colds]}
+
+    def summary(runs):
+        return [{key: run[key] for key in ("import_to_first_frame_s", "cpu_s",
+                                           "second_process_cpu_s", "load_average_before")}
+                for run in runs]
+    return {"preset": preset, "cold": median(colds), "cold_one_process": median(singles),
+            "warm": median(warms), "cold_runs": summary(colds),
+            "cold_one_process_runs": summary(singles)}
 
 
 # ----------------------------------------------------------------------------- memory, offline

@@ -10,9 +10,9 @@ starts it), and at most once per pipeline config per process; it shares numba's 
 location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``) through its environment.
 Set ``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the calling process.
 
-Its stages see the shipped weights and the shipped body model's mean body as a target:
-numba compiles per argument type, not value, so any weights and target of the same dtypes
-give the same kernels. If it fails or is not done in ``WAIT_S``, the caller compiles what
+Its stages see the shipped weights and, as a target, the shipped body model's mean body
+(its skeleton given, SKIN run on it): numba compiles per argument type, not value, so any
+weights and target of the same dtypes give the same kernels. If it fails or is not done in ``WAIT_S``, the caller compiles what
 is missing itself, as without it.
 
     python -m minretarget._compile_ahead '<PipelineConfig JSON>'
@@ -23,6 +23,10 @@ import subprocess
 import sys
 
 import numpy as np
+
+from .fit import body_model, local_from_joints
+from .pipeline import PipelineConfig
+from .weights import load_weights
 
 SWITCH = "MINRETARGET_COMPILE_AHEAD"
 WAIT_S = 300.0
@@ -66,37 +70,22 @@ def join(process):
         process.wait()
 
 
-def body_model_target():
-    """(points (Q, 3) float32, T-pose joints (J, 3) float32, skinning weights (Q, J)
-    float32) of the shipped body model's mean body: a rigged target without SKR or SKIN."""
-    from .conventions import NUM_JOINTS
-    from .fit import body_model
-    model = body_model()
-    weights = np.zeros((len(model.points), NUM_JOINTS))
-    np.add.at(weights, (np.arange(len(model.points))[:, None], model.bone_index),
-              model.bone_weight)
-    return (model.points.astype(np.float32), model.joints.astype(np.float32),
-            weights.astype(np.float32))
-
-
 def main(argv=None):
     # This process only compiles: Python's cyclic garbage collector would take about 8 % of
     # its time (docs/runtime_notes.md), and nothing it makes lives long.
     gc.disable()
-    from .fit import local_from_joints
-    from .pipeline import PipelineConfig
-    from .retargeter import Retargeter
-    from .weights import load_weights
+    from .retargeter import Retargeter              # here: retargeter imports this module
     config_json, = sys.argv[1:] if argv is None else argv
     config = PipelineConfig.from_json(config_json)
     retargeter = Retargeter(load_weights(None), config, warn=False)
-    points, tpose_joints, skin_weights = body_model_target()
+    model = body_model()
+    points, tpose_joints = model.points.astype(np.float32), model.joints.astype(np.float32)
+    # First what the calling process comes to last before the later stages: SKIN, at the
+    # end of its set_target, and (with the fit) the fit's pose of its model like the
+    # reading (``local_from_joints``) on its first frame; then the later stages.
+    retargeter.set_target(points, tpose_joints=tpose_joints)
     if config.fit_source is not None:
-        # The fit's first frame poses its model like the reading (``local_from_joints``),
-        # about 2 s of compiling that the calling process would come to last, after SKR,
-        # the refiner and SKIN: done here first, it is in the cache by then.
         local_from_joints(tpose_joints, tpose_joints)
-    retargeter.set_target(points, tpose_joints=tpose_joints, skin_weights=skin_weights)
     retargeter.warm_up(skeleton=True)
 
 

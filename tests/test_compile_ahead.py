@@ -6,7 +6,6 @@ import sys
 import textwrap
 import time
 
-import numpy as np
 import pytest
 
 from minretarget import _compile_ahead
@@ -113,11 +112,3 @@ def test_a_stream_waits_for_it_before_the_first_stage_after_the_cloud(monkeypatc
     assert waits == [cloud_stages] and retargeter._compiler is None
     retargeter.step(clouds[1])                            # once only
     assert len(waits) == 1
-
-
-def test_body_model_target_is_a_rig():
-    points, joints, weights = _compile_ahead.body_model_target()
-    assert points.dtype == joints.dtype == weights.dtype == np.float32
-    assert joints.shape == (22, 3) and weights.shape == (len(points), 22)
-    np.testing.assert_allclose(weights.sum(axis=1), 1, atol=1e-5)
-    assert (weights >= 0).all()
