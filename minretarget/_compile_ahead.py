@@ -21,6 +21,7 @@ import gc
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -51,10 +52,14 @@ def start(config):
             or key in _started):
         return None
     _started.add(key)
+    # This very package first on its path (a checkout on sys.path, not installed, too), so
+    # it compiles the same source files into the same cache.
+    package_root = str(Path(__file__).resolve().parents[1])
+    path = os.pathsep.join(filter(None, (package_root, os.environ.get("PYTHONPATH"))))
     try:
         return subprocess.Popen(
             [sys.executable, "-m", "minretarget._compile_ahead", key],
-            env={**os.environ, SWITCH: "0"}, stdin=subprocess.DEVNULL,
+            env={**os.environ, SWITCH: "0", "PYTHONPATH": path}, stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:                                 # cannot start a process here: go on alone
         return None

@@ -5,7 +5,8 @@ the per-frame kernels besides SKR are too short for threads to pay for themselve
 cost more than it saved: numba's TBB threading layer leaks memory on every parallel call
 (numba issue #10225), and with its OpenMP layer the threads wait at the barrier whenever
 another process holds a core (the figures: docs/runtime_notes.md). Compiled code is cached
-on disk next to the package, so only the first import on a machine pays the compile time.
+on disk next to the package, so only the first import on a machine pays the compile time
+(and a retargeter shares it with a second process: ``_compile_ahead``).
 fastmath allows reassociation and contraction (FMA) but keeps NaN and inf semantics, so a
 bad value propagates instead of being optimised into garbage. Set ``NUMBA_DISABLE_JIT=1``
 to run every kernel as plain Python (the tests do this too).

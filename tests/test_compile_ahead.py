@@ -5,6 +5,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import pytest
 
@@ -83,6 +84,8 @@ def test_start_is_switched_off_by_the_environment_and_once_per_config(monkeypatc
     (argv, kwargs), = launched
     assert argv[1:] == ["-m", "minretarget._compile_ahead", config.to_json()]
     assert kwargs["env"][_compile_ahead.SWITCH] == "0"          # it starts none of its own
+    package_root = str(Path(_compile_ahead.__file__).resolve().parents[1])
+    assert kwargs["env"]["PYTHONPATH"].split(os.pathsep)[0] == package_root   # this package
 
 
 def test_join_stops_a_process_that_overruns(monkeypatch):
