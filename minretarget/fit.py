@@ -23,6 +23,8 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    reading's pose (the analytic bone alignment of the model onto it); after
    ``race_iterations`` steps from each, the one that meets the cloud better goes on: a lost
    track recovers, a leg never passes through empty space to follow the reading. When the
+   better one explains the cloud poorly (``swap_legs_cost``), the reading with its lower
+   legs swapped is a third start (SKR reads some crossed legs swapped). When the
    better one leaves a shin or foot in empty space (``lost_legs``: a kick neither start
    followed), its next steps run at a wider robust width without the reading's pull, to
    reach the leg's points again. A cloud where the body is not found (``LOST_COST``) is
@@ -63,6 +65,12 @@ _LOWER_LEGS = np.full(NUM_JOINTS, -1, np.int64)
 for _side, _name in enumerate(("left", "right")):
     for _joint in ("knee", "ankle", "foot"):
         _LOWER_LEGS[JOINT_INDEX[f"{_name}_{_joint}"]] = _side
+# Joint order with the lower legs' joints (knee, ankle, foot) of the two sides exchanged:
+# ``joints[_SWAPPED_LEGS]`` puts each leg where the other was, the hips where they are.
+_SWAPPED_LEGS = np.arange(NUM_JOINTS)
+for _joint in ("knee", "ankle", "foot"):
+    _left, _right = JOINT_INDEX[f"left_{_joint}"], JOINT_INDEX[f"right_{_joint}"]
+    _SWAPPED_LEGS[_left], _SWAPPED_LEGS[_right] = _right, _left
 
 
 class BodyModel(NamedTuple):
@@ -127,6 +135,8 @@ class FitSettings(NamedTuple):
                                      # cloud lies in empty space
     lost_leg_share: float = 0.3    # the share of a lower leg's points in empty space past
                                    # which it is lost
+    swap_legs_cost: float = 0.04   # metres: a frame whose better start costs more is also
+                                   # fitted from SKR's reading with its legs swapped (0: never)
 
 
 def check_fit_settings(settings):
@@ -146,7 +156,7 @@ def check_fit_settings(settings):
         raise ValueError(f"FitSettings.settle_rounds must be an integer >= 0, got "
                          f"{settings.settle_rounds!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "motion_pull",
-                 "reseed_distance", "lost_leg_width", "lost_leg_distance"):
+                 "reseed_distance", "lost_leg_width", "lost_leg_distance", "swap_legs_cost"):
         value = getattr(settings, name)
         positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
@@ -799,7 +809,7 @@ def start_fit(model, settings, cloud, reading):
 
 def fit_frame(model, settings, state, cloud, reading):
     """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
-    from SKR's reading won."""
+    from SKR's reading (or from it with its legs swapped) won."""
     t = state.frames
     cloud, reading = subsample(cloud, settings.cloud_points, t), np.asarray(reading, np.float64)
     grid = build_grid(cloud)
@@ -821,6 +831,18 @@ def fit_frame(model, settings, state, cloud, reading):
                          pulls)
         if fresh[3] < cost:
             (local, root, joints, cost), reseeded = fresh, True
+    if settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost:
+        # The better start explains the cloud poorly: SKR may have read the legs swapped (a
+        # leg across the other, the body turned), and the track followed. The reading with
+        # its legs swapped is fitted too; if it meets the cloud better, it is this frame's
+        # reading from here on.
+        swapped = reading[_SWAPPED_LEGS]
+        swapped_pulls = ((settings.reading_pull, swapped),) + pulls[1:]
+        other = fit_pose(model, rest, tpose_joints, cloud, grid,
+                         local_from_joints(swapped, tpose_joints), swapped[0].copy(), race,
+                         swapped_pulls)
+        if other[3] < cost:
+            (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
     if settings.lost_leg_width > 0 and (lost_legs(
             model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
             > settings.lost_leg_share):

@@ -297,6 +297,40 @@ def test_a_shin_in_empty_space_is_reached_for(model):
     assert miss[fit.FitSettings().lost_leg_width] < 0.5 * miss[0.0]
 
 
+def test_legs_read_swapped_are_swapped_back(model):
+    """SKR reads the legs swapped (each where the other is) and the track has followed: the
+    frame's better start explains the cloud poorly, so the reading with its legs swapped is
+    tried too and wins. The cloud is the model's own surface, so its costs are a quarter of a
+    real cloud's (0.03-0.04 m): the threshold is lowered to match. Without the third start
+    the legs stay swapped; a reading that has the legs right keeps them."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    truth, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    truth[fit.JOINT_INDEX["left_hip"]] = turned([1, 0, 0], -0.7)
+    truth[fit.JOINT_INDEX["right_hip"]] = turned([1, 0, 0], 0.4)
+    truth[fit.JOINT_INDEX["left_knee"]] = turned([1, 0, 0], 0.5)
+    rotations, joints = fit.forward(truth, root, tpose)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    swapped = joints[fit._SWAPPED_LEGS]
+    assert np.array_equal(swapped[fit._SWAPPED_LEGS], joints)
+    ankle = fit.JOINT_INDEX["left_ankle"]
+    assert np.linalg.norm(swapped[ankle] - joints[ankle]) > 0.3
+
+    def fitted(reading, swap_legs_cost):
+        local = fit.local_from_joints(reading, tpose)          # the track as the reading
+        _, held = fit.forward(local, root, tpose)
+        state = fit.FitState(30, shape, local, root, np.stack([held, held]), (), 0.03)
+        return fit.fit_frame(model, fit.FitSettings(swap_legs_cost=swap_legs_cost), state,
+                             cloud, reading)[1]
+
+    def error(found):
+        return np.linalg.norm(found - joints, axis=1).mean()
+
+    assert error(fitted(swapped, 0.0)) > 0.1
+    assert error(fitted(swapped, 0.01)) < 0.015
+    assert error(fitted(joints, 0.01)) < 0.015
+
+
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
     shape, rest, tpose, _, _, rotations, joints = posed_state(model, seed=9, turn=0.1)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
@@ -356,7 +390,8 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
     for field, value in (("iterations", 0), ("model_stride", 0), ("robust_width", 0.0),
                          ("reading_pull", -1.0), ("settle_rounds", -1),
                          ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
-                         ("lost_leg_share", 0.0), ("lost_leg_share", 1.5)):
+                         ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
+                         ("swap_legs_cost", -0.01)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))
