@@ -22,8 +22,13 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    fit and SKR's reading disagree (by default: always), the frame is also fitted from the
    reading's pose (the analytic bone alignment of the model onto it); after
    ``race_iterations`` steps from each, the one that meets the cloud better goes on: a lost
-   track recovers, a leg never passes through empty space to follow the reading. A cloud
-   where the body is not found (``LOST_COST``) is skipped: the last pose is held through it.
+   track recovers, a leg never passes through empty space to follow the reading. When the
+   better one explains the cloud poorly (``swap_legs_cost``), the reading with its lower
+   legs swapped is a third start (SKR reads some crossed legs swapped). When the
+   better one leaves a shin or foot in empty space (``lost_legs``: a kick neither start
+   followed), its next steps run at a wider robust width without the reading's pull, to
+   reach the leg's points again. A cloud where the body is not found (``LOST_COST``) is
+   skipped: the last pose is held through it.
 
 Lengths are metres; the solver works in float64.
 """
@@ -35,7 +40,7 @@ import numpy as np
 
 from ._jit import kernel
 from .analytic import analytic_rotations
-from .conventions import NUM_JOINTS, PARENTS
+from .conventions import JOINT_INDEX, NUM_JOINTS, PARENTS
 from .nearest import _build_grid_kernel, _nearest_kernel, build_grid
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
                          quaternion_to_matrix)
@@ -54,6 +59,18 @@ LOST_COST = 0.06
 # Robust widths (metres) of the first frame's rounds of pose and shape: wide first, so that a
 # body far from the mean is pulled in before it is fitted.
 CALIBRATION_WIDTHS = (0.2, 0.1, 0.07, 0.05, 0.03, 0.03, 0.03, 0.03)
+# Each joint's lower leg (0 left, 1 right, -1 neither): the bones a model point moves with
+# most that make it a shin or foot point (``lost_legs``).
+_LOWER_LEGS = np.full(NUM_JOINTS, -1, np.int64)
+for _side, _name in enumerate(("left", "right")):
+    for _joint in ("knee", "ankle", "foot"):
+        _LOWER_LEGS[JOINT_INDEX[f"{_name}_{_joint}"]] = _side
+# Joint order with the lower legs' joints (knee, ankle, foot) of the two sides exchanged:
+# ``joints[_SWAPPED_LEGS]`` puts each leg where the other was, the hips where they are.
+_SWAPPED_LEGS = np.arange(NUM_JOINTS)
+for _joint in ("knee", "ankle", "foot"):
+    _left, _right = JOINT_INDEX[f"left_{_joint}"], JOINT_INDEX[f"right_{_joint}"]
+    _SWAPPED_LEGS[_left], _SWAPPED_LEGS[_right] = _right, _left
 
 
 class BodyModel(NamedTuple):
@@ -112,6 +129,14 @@ class FitSettings(NamedTuple):
     model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
+    lost_leg_width: float = 0.1    # metres: robust width of the steps that find a lost lower
+                                   # leg again (0: never looked for)
+    lost_leg_distance: float = 0.08  # metres: a lower leg's model point this far from the
+                                     # cloud lies in empty space
+    lost_leg_share: float = 0.3    # the share of a lower leg's points in empty space past
+                                   # which it is lost
+    swap_legs_cost: float = 0.04   # metres: a frame whose better start costs more is also
+                                   # fitted from SKR's reading with its legs swapped (0: never)
 
 
 def check_fit_settings(settings):
@@ -131,12 +156,16 @@ def check_fit_settings(settings):
         raise ValueError(f"FitSettings.settle_rounds must be an integer >= 0, got "
                          f"{settings.settle_rounds!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "motion_pull",
-                 "reseed_distance"):
+                 "reseed_distance", "lost_leg_width", "lost_leg_distance", "swap_legs_cost"):
         value = getattr(settings, name)
-        positive = name == "robust_width"
+        positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
             raise ValueError(f"FitSettings.{name} must be a finite number "
                              f"{'> 0' if positive else '>= 0'}, got {value!r}")
+    share = settings.lost_leg_share
+    if not np.isfinite(share) or not 0 < share <= 1:
+        raise ValueError(f"FitSettings.lost_leg_share must be a number in (0, 1], got "
+                         f"{share!r}")
     return settings
 
 
@@ -542,6 +571,59 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
     return cost
 
 
+@kernel
+def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, lower_legs,
+                      cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
+                      far, shares):
+    """``lost_legs`` on arrays: shares (2,) gets, per lower leg, the share of its model points
+    (those whose heaviest bone is one of the leg's, ``lower_legs`` (J,) 0 or 1, else -1),
+    posed by LBS, that lie farther than ``far`` from the cloud."""
+    leg = np.empty(rest.shape[0], np.int64)
+    count = 0
+    for q in range(rest.shape[0]):
+        heaviest, weight = 0, -1.0
+        for b in range(bone_index.shape[1]):
+            if bone_weight[q, b] > weight:
+                heaviest, weight = bone_index[q, b], bone_weight[q, b]
+        leg[q] = lower_legs[heaviest]
+        if leg[q] >= 0:
+            count += 1
+    points = np.empty((count, 3))
+    sides = np.empty(count, np.int64)
+    count = 0
+    for q in range(rest.shape[0]):
+        if leg[q] < 0:
+            continue
+        for a in range(3):
+            points[count, a] = 0.0
+        for b in range(bone_index.shape[1]):
+            w = bone_weight[q, b]
+            if w == 0.0:
+                continue
+            k = bone_index[q, b]
+            for a in range(3):
+                moved = joints[k, a]
+                for c in range(3):
+                    moved += rotations[k, a, c] * (rest[q, c] - tpose[k, c])
+                points[count, a] += w * moved
+        sides[count] = leg[q]
+        count += 1
+    distances, nearest = np.empty(count), np.empty(count, np.int64)
+    _nearest_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
+                    points, distances, nearest)
+    totals = np.empty(2)
+    for s in range(2):
+        totals[s] = 0.0
+        shares[s] = 0.0
+    for i in range(count):
+        totals[sides[i]] += 1.0
+        if distances[i] > far:
+            shares[sides[i]] += 1.0
+    for s in range(2):
+        if totals[s] > 0.0:
+            shares[s] /= totals[s]
+
+
 # ----------------------------------------------------------------------------- posing
 
 def shaped(model, shape):
@@ -580,6 +662,26 @@ def apply_step(local, root, rotations, step):
     new = np.empty_like(local)
     _apply_step_kernel(local, rotations, step, _PARENTS, new)
     return new, root + step[:3]
+
+
+def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far):
+    """Per lower leg (left, right), the share of its model points (shin and foot: those whose
+    heaviest skinning bone is the knee's, the ankle's or the foot's) that lie farther than
+    ``far`` metres from the cloud (``cloud_grid``, ``nearest.build_grid``) at the pose
+    ``local`` (J, 3, 3), ``root`` (3,) of the shaped model (``shaped``) -> (2,) float64.
+    A leg mostly in empty space is lost: the fit's robust terms no longer reach its cloud."""
+    local = np.ascontiguousarray(local, np.float64)
+    root = np.ascontiguousarray(root, np.float64)
+    if local.shape != (NUM_JOINTS, 3, 3) or root.shape != (3,) or far <= 0:
+        raise ValueError(f"lost_legs: local must be (22, 3, 3), root (3,) and far > 0, got "
+                         f"{local.shape}, {root.shape}, {far!r}")
+    rotations, joints = forward(local, root, tpose_joints)
+    shares = np.empty(2)
+    _lost_legs_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, rotations,
+                      joints, _LOWER_LEGS, cloud_grid.points, cloud_grid.origin,
+                      cloud_grid.cell, cloud_grid.dims, cloud_grid.order, cloud_grid.starts,
+                      float(far), shares)
+    return shares
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -707,7 +809,7 @@ def start_fit(model, settings, cloud, reading):
 
 def fit_frame(model, settings, state, cloud, reading):
     """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
-    from SKR's reading won."""
+    from SKR's reading (or from it with its legs swapped) won."""
     t = state.frames
     cloud, reading = subsample(cloud, settings.cloud_points, t), np.asarray(reading, np.float64)
     grid = build_grid(cloud)
@@ -729,6 +831,27 @@ def fit_frame(model, settings, state, cloud, reading):
                          pulls)
         if fresh[3] < cost:
             (local, root, joints, cost), reseeded = fresh, True
+    if settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost:
+        # The better start explains the cloud poorly: SKR may have read the legs swapped (a
+        # leg across the other, the body turned), and the track followed. The reading with
+        # its legs swapped is fitted too; if it meets the cloud better, it is this frame's
+        # reading from here on.
+        swapped = reading[_SWAPPED_LEGS]
+        swapped_pulls = ((settings.reading_pull, swapped),) + pulls[1:]
+        other = fit_pose(model, rest, tpose_joints, cloud, grid,
+                         local_from_joints(swapped, tpose_joints), swapped[0].copy(), race,
+                         swapped_pulls)
+        if other[3] < cost:
+            (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
+    if settings.lost_leg_width > 0 and (lost_legs(
+            model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
+            > settings.lost_leg_share):
+        # A shin in empty space (a kick neither start followed): the robust terms no longer
+        # reach its cloud, and SKR's reading, as lost there, holds it. Steps at a wider width
+        # without the reading's pull reach out for it.
+        local, root, joints, cost = fit_pose(
+            model, rest, tpose_joints, cloud, grid, local, root,
+            race._replace(robust_width=settings.lost_leg_width), pulls[1:])
     if settings.iterations > race.iterations:          # the better start goes on
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,

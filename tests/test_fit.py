@@ -247,6 +247,90 @@ def test_fit_pose_recovers_a_pose_from_its_own_surface(model):
     assert cost < 0.002
 
 
+def test_lost_legs_matches_its_twin(model):
+    """The share of each lower leg's points in empty space, against brute force, on a cloud
+    of the model in another pose (some of each leg's points far from it, some near)."""
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=11, turn=0.5)
+    *_, other_rotations, other_joints = posed_state(model, seed=12, turn=0.5)
+    cloud = fit.pose_model(model, rest, tpose, other_rotations, other_joints).points[::2]
+    for far in (0.02, 0.08):
+        got = fit.lost_legs(model, rest, tpose, local, root, build_grid(cloud), far)
+        want = twins.lost_legs(model, rest, tpose, rotations, joints, cloud, far)
+        np.testing.assert_allclose(got, want, atol=1e-12)
+    assert 0 < got.min() < 1            # a leg partly in empty space
+    own = fit.pose_model(model, rest, tpose, rotations, joints).points
+    np.testing.assert_array_equal(
+        fit.lost_legs(model, rest, tpose, local, root, build_grid(own), 0.02), [0, 0])
+
+
+def turned(axis, angle):
+    """The rotation matrix of ``angle`` radians about the unit ``axis``."""
+    x, y, z = np.asarray(axis, np.float64) * np.sin(angle / 2)
+    return quaternion_to_matrix(np.array([[np.cos(angle / 2), x, y, z]]))[0].astype(np.float64)
+
+
+def test_a_shin_in_empty_space_is_reached_for(model):
+    """A kick that neither the last frame nor SKR's reading followed (docs/source_fit.md,
+    05_14): the shin hangs where the cloud has none, too far for the robust terms. The steps
+    at ``lost_leg_width`` without the reading's pull bring the ankle more than halfway back;
+    without them it stays where it was."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    hip, knee = fit.JOINT_INDEX["left_hip"], fit.JOINT_INDEX["left_knee"]
+    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    start[hip] = turned([1, 0, 0], -0.6)                     # the thigh forward
+    kicked = start.copy()
+    kicked[knee] = turned([1, 0, 0], 0.7)                    # the shin swung on
+    rotations, joints = fit.forward(kicked, root, tpose)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    _, held = fit.forward(start, root, tpose)
+    assert fit.lost_legs(model, rest, tpose, start, root, build_grid(cloud),
+                         fit.FitSettings().lost_leg_distance)[0] > 0.5
+    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
+    ankle = fit.JOINT_INDEX["left_ankle"]
+    miss = {}
+    for width in (0.0, fit.FitSettings().lost_leg_width):
+        _, found, _ = fit.fit_frame(model, fit.FitSettings(lost_leg_width=width), state,
+                                    cloud, held)              # the reading as lost as the track
+        miss[width] = np.linalg.norm(found[ankle] - joints[ankle])
+    assert miss[0.0] > 0.2
+    assert miss[fit.FitSettings().lost_leg_width] < 0.5 * miss[0.0]
+
+
+def test_legs_read_swapped_are_swapped_back(model):
+    """SKR reads the legs swapped (each where the other is) and the track has followed: the
+    frame's better start explains the cloud poorly, so the reading with its legs swapped is
+    tried too and wins. The cloud is the model's own surface, so its costs are a quarter of a
+    real cloud's (0.03-0.04 m): the threshold is lowered to match. Without the third start
+    the legs stay swapped; a reading that has the legs right keeps them."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    truth, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    truth[fit.JOINT_INDEX["left_hip"]] = turned([1, 0, 0], -0.7)
+    truth[fit.JOINT_INDEX["right_hip"]] = turned([1, 0, 0], 0.4)
+    truth[fit.JOINT_INDEX["left_knee"]] = turned([1, 0, 0], 0.5)
+    rotations, joints = fit.forward(truth, root, tpose)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    swapped = joints[fit._SWAPPED_LEGS]
+    assert np.array_equal(swapped[fit._SWAPPED_LEGS], joints)
+    ankle = fit.JOINT_INDEX["left_ankle"]
+    assert np.linalg.norm(swapped[ankle] - joints[ankle]) > 0.3
+
+    def fitted(reading, swap_legs_cost):
+        local = fit.local_from_joints(reading, tpose)          # the track as the reading
+        _, held = fit.forward(local, root, tpose)
+        state = fit.FitState(30, shape, local, root, np.stack([held, held]), (), 0.03)
+        return fit.fit_frame(model, fit.FitSettings(swap_legs_cost=swap_legs_cost), state,
+                             cloud, reading)[1]
+
+    def error(found):
+        return np.linalg.norm(found - joints, axis=1).mean()
+
+    assert error(fitted(swapped, 0.0)) > 0.1
+    assert error(fitted(swapped, 0.01)) < 0.015
+    assert error(fitted(joints, 0.01)) < 0.015
+
+
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
     shape, rest, tpose, _, _, rotations, joints = posed_state(model, seed=9, turn=0.1)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
@@ -304,7 +388,10 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
     with pytest.raises(TypeError, match="refine must be True or False, got 'no'"):
         Retargeter(tiny_weights, PipelineConfig(refine="no"))
     for field, value in (("iterations", 0), ("model_stride", 0), ("robust_width", 0.0),
-                         ("reading_pull", -1.0), ("settle_rounds", -1)):
+                         ("reading_pull", -1.0), ("settle_rounds", -1),
+                         ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
+                         ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
+                         ("swap_legs_cost", -0.01)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))

@@ -338,6 +338,21 @@ def body_model_pose(model, rest, tpose, rotations, joints):
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True), lever, reach
 
 
+def lost_legs(model, rest, tpose, rotations, joints, cloud, far):
+    """The source fit's lost lower legs (minretarget.fit.lost_legs) by brute force: per leg
+    (left, right), the share of the model points whose heaviest bone is its knee, ankle or
+    foot that lie farther than ``far`` from every cloud point -> (2,)."""
+    from minretarget.conventions import JOINT_INDEX
+    points = body_model_pose(model, rest, tpose, rotations, joints)[0]
+    heaviest = model.bone_index[np.arange(len(rest)), model.bone_weight.argmax(axis=1)]
+    distance = np.linalg.norm(points[:, None] - cloud[None], axis=-1).min(axis=1)
+    shares = []
+    for side in ("left", "right"):
+        leg = np.isin(heaviest, [JOINT_INDEX[f"{side}_{j}"] for j in ("knee", "ankle", "foot")])
+        shares.append(float((distance[leg] > far).mean()))
+    return np.array(shares)
+
+
 def surface_pairs(posed_points, cloud, robust_width, model_to_cloud, model_stride, truncate):
     """The source fit's pairs (minretarget.fit.surface_terms) one by one, before they are
     summed per model point: each cloud point with its nearest model point, each
