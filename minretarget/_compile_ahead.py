@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .fit import body_model, local_from_joints
+from .nearest import build_grid, nearest
 from .pipeline import PipelineConfig
 from .weights import load_weights
 
@@ -87,10 +88,13 @@ def main(argv=None):
     points, tpose_joints = model.points.astype(np.float32), model.joints.astype(np.float32)
     # First what the calling process comes to last before the later stages: SKIN, at the
     # end of its set_target, and (with the fit) the fit's pose of its model like the
-    # reading (``local_from_joints``) on its first frame; then the later stages.
+    # reading (``local_from_joints``) and its cloud's grid and nearest points on its first
+    # frame; then the later stages.
     retargeter.set_target(points, tpose_joints=tpose_joints)
     if config.fit_source is not None:
         local_from_joints(tpose_joints, tpose_joints)
+        cloud = model.points.copy()                 # float64, as the fit's subsample
+        nearest(build_grid(cloud), cloud)
     retargeter.warm_up(skeleton=True)
 
 
