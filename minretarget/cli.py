@@ -28,7 +28,7 @@ value) is reported in one line naming the file (and frame), exit status 1; likel
 interrupted ``retarget`` keeps its complete frames and a checkpoint: ``--resume`` finishes
 it with the same result as an uninterrupted run (``minretarget.checkpoint``); a run that
 fails before its first frame leaves the folder as it was. The numba kernels compile on a
-machine's first run (about 30 s, said in a line before the progress bar starts), or at
+machine's first run (about 15-25 s, said in a line before the progress bar starts), or at
 ``minretarget warmup``, then load from their on-disk cache. A fresh run refuses an output
 folder that holds another run's files unless ``--overwrite``, which keeps them aside until
 the new run completes; the demo replaces only an earlier demo's.
@@ -585,7 +585,7 @@ def _print_warning(message, category, filename, lineno, file=None, line=None):
         tqdm.write(text, file=sys.stderr)
 
 
-COMPILING = "Compiling kernels once (about 30 s; cached afterwards)"
+COMPILING = "Compiling kernels once (about 15-25 s; cached afterwards)"
 
 
 def _compiling():
