@@ -36,7 +36,7 @@ import numpy as np
 from ._jit import kernel
 from .analytic import analytic_rotations
 from .conventions import NUM_JOINTS, PARENTS
-from .nearest import _build_grid_kernel, _nearest_kernel, build_grid
+from .nearest import _nearest_both_ways_kernel, build_grid
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
                          quaternion_to_matrix)
 from .sampling import seeded_subset
@@ -364,20 +364,20 @@ def _pull_normal_equations_kernel(joints, goal, weight, parents, hessian, gradie
 def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
                           cloud_starts, robust_width, model_to_cloud, model_stride):
     """``surface_terms`` on arrays: -> model index (N,), targets (N, 3), weights (N,), cost."""
-    origin, cell, dims, order, starts = _build_grid_kernel(posed, 0.0)
+    # Both ways in one pass over the cloud's grid (``nearest``): each cloud point's nearest
+    # model point (inward), each stride-th model point's nearest cloud point (outward).
+    nearest_distance, nearest_index = np.empty(len(posed)), np.empty(len(posed), np.int64)
     inward_distance = np.empty(len(cloud))
     inward_index = np.empty(len(cloud), np.int64)
-    _nearest_kernel(posed, origin, cell, dims, order, starts, cloud, inward_distance,
-                    inward_index)
+    _nearest_both_ways_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                              cloud_starts, posed, model_stride, nearest_distance,
+                              nearest_index, inward_distance, inward_index)
     outward_count = (len(posed) + model_stride - 1) // model_stride   # every stride-th
-    outward_points = np.empty((outward_count, 3))
-    for i in range(outward_count):
-        for a in range(3):
-            outward_points[i, a] = posed[i * model_stride, a]
     outward_distance = np.empty(outward_count)
     outward_nearest = np.empty(outward_count, np.int64)
-    _nearest_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
-                    outward_points, outward_distance, outward_nearest)
+    for i in range(outward_count):
+        outward_distance[i] = nearest_distance[i * model_stride]
+        outward_nearest[i] = nearest_index[i * model_stride]
     # Pairs that share a model point share its row (``_plane_row`` depends on the point alone):
     # summed per model point, their weights and weighted targets give the same normal
     # equations from at most Q rows instead of P + Q / stride.
