@@ -175,17 +175,55 @@ def _forward_kernel(local, root, tpose, parents, rotations, joints):
 
 
 @kernel
+def _chains_kernel(bone_index, bone_weight, parents, below, joints, count, reach):
+    """Each model point's chain (``Chains``): the joints that move it, ascending, with the sum
+    of its bones' weights at or below each; ``below`` (J, J) gets below[k, j] = whether bone
+    k is joint j or a descendant of it."""
+    bodies = parents.shape[0]
+    below[:] = False
+    for k in range(bodies):
+        j = k
+        while j >= 0:
+            below[k, j] = True
+            j = parents[j]
+    full = np.empty(bodies)
+    for q in range(bone_index.shape[0]):
+        full[:] = 0.0
+        for b in range(bone_index.shape[1]):
+            w = bone_weight[q, b]
+            if w == 0.0:
+                continue
+            j = bone_index[q, b]
+            while j >= 0:
+                full[j] += w
+                j = parents[j]
+        count[q] = 0
+        for j in range(bodies):
+            if full[j] > 0.0:
+                joints[q, count[q]] = j
+                reach[q, count[q]] = full[j]
+                count[q] += 1
+        for u in range(count[q], joints.shape[1]):
+            joints[q, u] = -1
+            reach[q, u] = 0.0
+
+
+@kernel
 def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
-                        parents, posed, posed_normals, lever, reach):
-    """LBS of the model's points, and each point's lever about each joint:
-    lever[q, j] = sum over the bones k at or below j of w_qk (bone k's move of q - joint j),
-    reach[q, j] = sum of those w_qk; turning joint j by d moves q by d x lever[q, j].
-    Written with scalar loops: numba's ``@`` on 3-vectors allocates and calls BLAS."""
-    lever[:] = 0.0
-    reach[:] = 0.0
+                        chain_joints, chain_count, chain_reach, below, posed, posed_normals,
+                        lever):
+    """LBS of the model's points, and each point's lever about each joint of its chain
+    (``Chains``): lever[q, u] = sum over the bones k at or below joint j = chain_joints[q, u]
+    of w_qk (bone k's move of q - joint j), so that turning j by d moves q by d x lever[q, u].
+    Only the chain's joints: a (Q, J, 3) lever, mostly zeros, cost more to clear and read
+    than to compute (issue 39). Scalar loops: numba's ``@`` on 3-vectors allocates and calls
+    BLAS."""
     for q in range(rest.shape[0]):
         posed[q] = 0.0
         posed_normals[q] = 0.0
+        links = chain_count[q]
+        for u in range(links):
+            lever[q, u] = 0.0
         for b in range(bone_index.shape[1]):
             w = bone_weight[q, b]
             if w == 0.0:
@@ -199,44 +237,42 @@ def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations
                     turned += rotations[k, a, c] * normals[q, c]
                 posed[q, a] += w * moved
                 posed_normals[q, a] += w * turned
-                j = k
-                while j >= 0:
-                    lever[q, j, a] += w * moved
-                    j = parents[j]
-            j = k
-            while j >= 0:
-                reach[q, j] += w
-                j = parents[j]
+                for u in range(links):
+                    if below[k, chain_joints[q, u]]:
+                        lever[q, u, a] += w * moved
         norm = np.sqrt(posed_normals[q, 0] ** 2 + posed_normals[q, 1] ** 2
                        + posed_normals[q, 2] ** 2)
         for a in range(3):
             posed_normals[q, a] /= norm
-        for j in range(lever.shape[1]):
+        for u in range(links):
+            j = chain_joints[q, u]
             for a in range(3):
-                lever[q, j, a] -= reach[q, j] * joints[j, a]
+                lever[q, u, a] -= chain_reach[q, u] * joints[j, a]
 
 
 @kernel
-def _plane_row(q, target, weight, posed, posed_normals, lever, reach, row, columns):
-    """One pair's weighted point-to-plane row: row . step = the change of sqrt(w) n . (x - y);
-    fills ``row`` (PARAMETERS,) where it is not zero, lists those entries in ``columns`` and
-    returns (their count, sqrt(w) n . (x - y))."""
+def _plane_row(q, target, weight, posed, posed_normals, lever, chain_joints, chain_count,
+               entries, columns):
+    """One pair's weighted point-to-plane row: row . step = the change of sqrt(w) n . (x - y).
+    Its entries that are not zero go to ``entries``, their columns (ascending, by 3 x 3
+    blocks: the translation, then each joint of the point's chain) to ``columns``; returns
+    (their count, sqrt(w) n . (x - y))."""
     s = np.sqrt(weight)
     n = posed_normals[q]
     count = 0
     for a in range(3):
-        row[a] = s * n[a]
+        entries[count] = s * n[a]
         columns[count] = a
         count += 1
-    for j in range(lever.shape[1]):
-        if reach[q, j] > 0.0:
-            l = lever[q, j]                            # d(n . x)/d(turn j) = lever x n
-            row[3 + 3 * j] = s * (l[1] * n[2] - l[2] * n[1])
-            row[4 + 3 * j] = s * (l[2] * n[0] - l[0] * n[2])
-            row[5 + 3 * j] = s * (l[0] * n[1] - l[1] * n[0])
-            for a in range(3):
-                columns[count] = 3 + 3 * j + a
-                count += 1
+    for u in range(chain_count[q]):
+        j = chain_joints[q, u]
+        l = lever[q, u]                                # d(n . x)/d(turn j) = lever x n
+        entries[count] = s * (l[1] * n[2] - l[2] * n[1])
+        entries[count + 1] = s * (l[2] * n[0] - l[0] * n[2])
+        entries[count + 2] = s * (l[0] * n[1] - l[1] * n[0])
+        for a in range(3):
+            columns[count] = 3 + 3 * j + a
+            count += 1
     value = 0.0
     for a in range(3):
         value += n[a] * (posed[q, a] - target[a])
@@ -245,34 +281,48 @@ def _plane_row(q, target, weight, posed, posed_normals, lever, reach, row, colum
 
 @kernel
 def _plane_normal_equations_kernel(model_index, targets, weights, posed, posed_normals, lever,
-                                   reach, hessian, gradient):
+                                   chain_joints, chain_count, hessian, gradient):
     """The pairs' normal equations, added to a symmetric ``hessian``: hessian += sum row
     row^T, gradient += sum row value (rows as ``_plane_row``), by 3 x 3 blocks over the joints
-    that move each point (the translation as block 0): the upper blocks are summed, then
-    copied below. Not a BLAS product: at this size BLAS's threads cost more than they give."""
+    that move each point (the translation as block 0). The blocks on and above the diagonal
+    are summed in a packed copy, each block's 9 numbers together (the dense matrix's rows
+    spread a row's ~20 blocks over more cache lines than L1 keeps: issue 39), then written
+    back and mirrored below. Not a BLAS product: at this size BLAS's threads cost more than
+    they give."""
     blocks = hessian.shape[0] // 3
-    row = np.empty(hessian.shape[0])
-    row[:] = 0.0
+    first = np.empty(blocks, np.int64)          # packed[first[u] + v]: block (u, v), v >= u
+    packed = np.empty((blocks * (blocks + 1) // 2, 3, 3))
+    for u in range(blocks):
+        first[u] = u * blocks - u * (u - 1) // 2 - u
+        for v in range(u, blocks):
+            for x in range(3):
+                for y in range(3):
+                    packed[first[u] + v, x, y] = hessian[3 * u + x, 3 * v + y]
+    entries = np.empty(hessian.shape[0])
     columns = np.empty(hessian.shape[0], np.int64)
     moved = np.empty(blocks, np.int64)
     for i in range(model_index.shape[0]):
         count, value = _plane_row(model_index[i], targets[i], weights[i], posed, posed_normals,
-                                  lever, reach, row, columns)
+                                  lever, chain_joints, chain_count, entries, columns)
         for u in range(count // 3):
             moved[u] = columns[3 * u] // 3
         for u in range(count // 3):
             a = 3 * moved[u]
             for x in range(3):
-                gradient[a + x] += row[a + x] * value
+                gradient[a + x] += entries[3 * u + x] * value
+            start = first[moved[u]]
             for v in range(u, count // 3):
-                b = 3 * moved[v]
+                block = packed[start + moved[v]]
                 for x in range(3):
                     for y in range(3):
-                        hessian[a + x, b + y] += row[a + x] * row[b + y]
-    for a in range(hessian.shape[0]):       # blocks above the diagonal, mirrored below
-        for b in range(a):
-            if a // 3 != b // 3:
-                hessian[a, b] = hessian[b, a]
+                        block[x, y] += entries[3 * u + x] * entries[3 * v + y]
+    for u in range(blocks):
+        for v in range(u, blocks):
+            for x in range(3):
+                for y in range(3):
+                    hessian[3 * u + x, 3 * v + y] = packed[first[u] + v, x, y]
+                    if v > u:
+                        hessian[3 * v + y, 3 * u + x] = packed[first[u] + v, x, y]
 
 
 @kernel
@@ -493,16 +543,16 @@ def _robust_weight(distance, width):
 
 @kernel
 def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, parents,
-                     cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
-                     robust_width, model_to_cloud, model_stride, pull_weight, pull_goal,
-                     local, root, joints):
+                     chain_joints, chain_count, chain_reach, below, cloud, cloud_origin,
+                     cloud_cell, cloud_dims, cloud_order, cloud_starts, robust_width,
+                     model_to_cloud, model_stride, pull_weight, pull_goal, local, root, joints):
     """``fit_pose``'s Gauss-Newton steps, in place on ``local`` (J, 3, 3) and ``root`` (3,);
     ``joints`` (J, 3) gets the result's; returns the cost measured before the last step."""
     count, bodies = rest.shape[0], tpose.shape[0]
     parameters = 3 + 3 * bodies
     rotations = np.empty((bodies, 3, 3))
     posed, posed_normals = np.empty((count, 3)), np.empty((count, 3))
-    lever, reach = np.empty((count, bodies, 3)), np.empty((count, bodies))
+    lever = np.empty((count, chain_joints.shape[1], 3))
     turned = np.empty_like(local)
     hessian = np.empty((parameters, parameters))
     gradient, step = np.empty(parameters), np.empty(parameters)
@@ -510,14 +560,15 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
     for _ in range(iterations):
         _forward_kernel(local, root, tpose, parents, rotations, joints)
         _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
-                            parents, posed, posed_normals, lever, reach)
+                            chain_joints, chain_count, chain_reach, below, posed,
+                            posed_normals, lever)
         paired, targets, weights, cost = _surface_pairs_kernel(
             posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
             robust_width, model_to_cloud, model_stride)
         hessian[:] = 0.0
         gradient[:] = 0.0
         _plane_normal_equations_kernel(paired, targets, weights, posed, posed_normals, lever,
-                                       reach, hessian, gradient)
+                                       chain_joints, chain_count, hessian, gradient)
         if pull_weight > 0.0:
             _pull_normal_equations_kernel(joints, pull_goal, pull_weight, parents, hessian,
                                           gradient)
@@ -558,20 +609,52 @@ def forward(local, root, tpose_joints):
     return rotations, joints
 
 
+class Chains(NamedTuple):
+    """The joints that move each model point (``_chains_kernel``): a body model's, once."""
+    joints: np.ndarray      # (Q, L) int64 ascending, padded with -1 (L: the longest chain)
+    count: np.ndarray       # (Q,) int64 how many
+    reach: np.ndarray       # (Q, L) the sum of the point's bone weights at or below each
+    below: np.ndarray       # (J, J) bool below[k, j]: joint k is j or a descendant of j
+
+
+_CHAINS = {}
+
+
+def model_chains(model):
+    """``Chains`` of a body model, computed on its first use and kept (for the last few
+    models, by their bone arrays' identity)."""
+    key = (id(model.bone_index), id(model.bone_weight))
+    kept = _CHAINS.get(key)
+    if kept is None or kept[0] is not model.bone_index or kept[1] is not model.bone_weight:
+        count = len(model.bone_index)
+        joints, reach = np.empty((count, NUM_JOINTS), np.int64), np.empty((count, NUM_JOINTS))
+        links, below = np.empty(count, np.int64), np.empty((NUM_JOINTS, NUM_JOINTS), np.bool_)
+        _chains_kernel(model.bone_index, model.bone_weight, _PARENTS, below, joints, links,
+                       reach)
+        width = max(int(links.max()), 1)
+        chains = Chains(np.ascontiguousarray(joints[:, :width]), links,
+                        np.ascontiguousarray(reach[:, :width]), below)
+        while len(_CHAINS) >= 4:
+            del _CHAINS[next(iter(_CHAINS))]
+        kept = _CHAINS[key] = (model.bone_index, model.bone_weight, chains)
+    return kept[2]
+
+
 class Posed(NamedTuple):
     points: np.ndarray      # (Q, 3) posed surface points, metres
     normals: np.ndarray     # (Q, 3) their unit normals
-    lever: np.ndarray       # (Q, J, 3) see _pose_points_kernel
-    reach: np.ndarray       # (Q, J)
+    lever: np.ndarray       # (Q, L, 3) about each joint of the point's chain: see
+    chains: Chains          # _pose_points_kernel
 
 
 def pose_model(model, rest, tpose_joints, rotations, joints):
     """The model's points posed by LBS, with what their Jacobian needs (``Posed``)."""
-    count = len(rest)
+    count, chains = len(rest), model_chains(model)
     posed = Posed(np.empty((count, 3)), np.empty((count, 3)),
-                  np.empty((count, NUM_JOINTS, 3)), np.empty((count, NUM_JOINTS)))
+                  np.empty((count, chains.joints.shape[1], 3)), chains)
     _pose_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, model.normals,
-                        rotations, joints, _PARENTS, *posed)
+                        rotations, joints, chains.joints, chains.count, chains.reach,
+                        chains.below, *posed[:3])
     return posed
 
 
@@ -621,9 +704,11 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
     local = np.array(local, np.float64, order="C")
     root = np.array(root, np.float64)
     joints = np.empty((NUM_JOINTS, 3))
+    chains = model_chains(model)
     cost = _fit_pose_kernel(
         settings.iterations, rest, tpose_joints, model.bone_index, model.bone_weight,
-        model.normals, _PARENTS, cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
+        model.normals, _PARENTS, chains.joints, chains.count, chains.reach, chains.below,
+        cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
         float(settings.model_to_cloud), int(settings.model_stride), float(pull_weight),
         np.zeros((NUM_JOINTS, 3)) if pull_goal is None else np.asarray(pull_goal, np.float64),
