@@ -219,13 +219,10 @@ def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries
                                 d = ((sorted_queries[t, 0] - x) ** 2
                                      + (sorted_queries[t, 1] - y) ** 2
                                      + (sorted_queries[t, 2] - z) ** 2)
-                                # selects, not branches: which is nearer is a coin toss
-                                nearer = d < own
-                                own = d if nearer else own
-                                own_index = t if nearer else own_index
-                                nearer = d < best[t]
-                                best[t] = d if nearer else best[t]
-                                best_index[t] = n if nearer else best_index[t]
+                                if d < own:
+                                    own, own_index = d, t
+                                if d < best[t]:
+                                    best[t], best_index[t] = d, n
                     back_distances[n] = own
                     back_indices[n] = query_order[own_index] if own_index >= 0 else -1
     for t in range(len(queries)):

@@ -8,6 +8,7 @@ from minretarget.nearest import build_grid
 
 from minretarget import fit
 from minretarget.conventions import NUM_JOINTS, PARENTS
+from minretarget.analytic import analytic_rotations
 from minretarget.kinematics import quaternion_to_matrix
 from minretarget.pipeline import PipelineConfig
 
@@ -440,3 +441,21 @@ def test_warm_up_does_not_warn_of_its_own_frames(tiny_weights, tiny_stream):
     with pytest.warns(FitWarning, match="frame 1: the source fit found no body"):
         for _ in range(2):
             retargeter.step(points)
+
+
+def test_shaped_keeps_its_last_answer_and_only_that(model):
+    first, second = np.full(len(model.points_basis), 0.5), np.full(len(model.points_basis), -1.0)
+    for shape in (first, second, first):
+        rest, tpose = fit.shaped(model, shape)
+        np.testing.assert_array_equal(rest, model.points + np.tensordot(shape, model.points_basis,
+                                                                        1))
+        np.testing.assert_array_equal(tpose, model.joints + np.tensordot(shape,
+                                                                         model.joints_basis, 1))
+    assert fit.shaped(model, first.copy())[0] is rest                  # kept, by value
+
+
+def test_local_from_joints_is_the_analytic_rotations(model):
+    _, _, tpose, _, _, _, joints = posed_state(model, seed=8)
+    want = quaternion_to_matrix(analytic_rotations(joints.astype(np.float32),
+                                                   tpose.astype(np.float32)))
+    np.testing.assert_array_equal(fit.local_from_joints(joints, tpose), want.astype(np.float64))
