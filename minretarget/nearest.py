@@ -255,13 +255,17 @@ def _pairs_one(points, dims, i, j, k, n, sorted_queries, query_starts, best, bes
     for u in range(max(i - 1, 0), min(i + 1, dims[0] - 1) + 1):
         for v in range(max(j - 1, 0), min(j + 1, dims[1] - 1) + 1):
             row = (u * dims[1] + v) * dims[2]               # k - 1..k + 1: one run
-            for t in range(query_starts[row + low], query_starts[row + high]):
-                d = ((sorted_queries[t, 0] - x) ** 2 + (sorted_queries[t, 1] - y) ** 2
-                     + (sorted_queries[t, 2] - z) ** 2)
+            # The run as slices indexed from 0: numba then knows the index is not negative
+            # and skips its wraparound arithmetic (a fifth of the instructions here).
+            first, last = query_starts[row + low], query_starts[row + high]
+            run, run_best, run_index = (sorted_queries[first:last], best[first:last],
+                                        best_index[first:last])
+            for e in range(last - first):
+                d = ((run[e, 0] - x) ** 2 + (run[e, 1] - y) ** 2 + (run[e, 2] - z) ** 2)
                 if d < own:
-                    own, own_index = d, t
-                if d < best[t]:
-                    best[t], best_index[t] = d, n
+                    own, own_index = d, first + e
+                if d < run_best[e]:
+                    run_best[e], run_index[e] = d, n
     back_distances[n], back_indices[n] = own, own_index
 
 
@@ -276,18 +280,21 @@ def _pairs_two(points, dims, i, j, k, n, other, sorted_queries, query_starts, be
     for u in range(max(i - 1, 0), min(i + 1, dims[0] - 1) + 1):
         for v in range(max(j - 1, 0), min(j + 1, dims[1] - 1) + 1):
             row = (u * dims[1] + v) * dims[2]
-            for t in range(query_starts[row + low], query_starts[row + high]):
-                qx, qy, qz = sorted_queries[t, 0], sorted_queries[t, 1], sorted_queries[t, 2]
+            first, last = query_starts[row + low], query_starts[row + high]
+            run, run_best, run_index = (sorted_queries[first:last], best[first:last],
+                                        best_index[first:last])
+            for e in range(last - first):
+                qx, qy, qz = run[e, 0], run[e, 1], run[e, 2]
                 d = (qx - x) ** 2 + (qy - y) ** 2 + (qz - z) ** 2
                 d2 = (qx - x2) ** 2 + (qy - y2) ** 2 + (qz - z2) ** 2
                 if d < own:
-                    own, own_index = d, t
+                    own, own_index = d, first + e
                 if d2 < own2:
-                    own2, own_index2 = d2, t
-                if d < best[t]:
-                    best[t], best_index[t] = d, n
-                if d2 < best[t]:
-                    best[t], best_index[t] = d2, other
+                    own2, own_index2 = d2, first + e
+                if d < run_best[e]:
+                    run_best[e], run_index[e] = d, n
+                if d2 < run_best[e]:
+                    run_best[e], run_index[e] = d2, other
     back_distances[n], back_indices[n] = own, own_index
     back_distances[other], back_indices[other] = own2, own_index2
 
