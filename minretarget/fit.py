@@ -175,11 +175,13 @@ def _forward_kernel(local, root, tpose, parents, rotations, joints):
 
 
 @kernel
-def _chains_kernel(bone_index, bone_weight, parents, below, joints, count, reach):
+def _chains_kernel(bone_index, bone_weight, parents, joints, count, reach, slots, slot_count,
+                   links, link_count):
     """Each model point's chain (``Chains``): the joints that move it, ascending, with the sum
-    of its bones' weights at or below each; ``below`` (J, J) gets below[k, j] = whether bone
-    k is joint j or a descendant of it."""
+    of its bones' weights at or below each; its bone slots of weight > 0, and for each the
+    places in the chain of the joints at or above its bone."""
     bodies = parents.shape[0]
+    below = np.empty((bodies, bodies), np.bool_)      # below[k, j]: k is j or a descendant
     below[:] = False
     for k in range(bodies):
         j = k
@@ -189,10 +191,13 @@ def _chains_kernel(bone_index, bone_weight, parents, below, joints, count, reach
     full = np.empty(bodies)
     for q in range(bone_index.shape[0]):
         full[:] = 0.0
+        slot_count[q] = 0
         for b in range(bone_index.shape[1]):
             w = bone_weight[q, b]
             if w == 0.0:
                 continue
+            slots[q, slot_count[q]] = b
+            slot_count[q] += 1
             j = bone_index[q, b]
             while j >= 0:
                 full[j] += w
@@ -206,28 +211,38 @@ def _chains_kernel(bone_index, bone_weight, parents, below, joints, count, reach
         for u in range(count[q], joints.shape[1]):
             joints[q, u] = -1
             reach[q, u] = 0.0
+        for t in range(slots.shape[1]):
+            link_count[q, t] = 0
+            for u in range(links.shape[2]):
+                links[q, t, u] = -1
+            if t < slot_count[q]:
+                for u in range(count[q]):
+                    if below[bone_index[q, slots[q, t]], joints[q, u]]:
+                        links[q, t, link_count[q, t]] = u
+                        link_count[q, t] += 1
+            else:
+                slots[q, t] = -1
 
 
 @kernel
 def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
-                        chain_joints, chain_count, chain_reach, below, posed, posed_normals,
-                        lever):
+                        chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                        link_count, posed, posed_normals, lever):
     """LBS of the model's points, and each point's lever about each joint of its chain
     (``Chains``): lever[q, u] = sum over the bones k at or below joint j = chain_joints[q, u]
     of w_qk (bone k's move of q - joint j), so that turning j by d moves q by d x lever[q, u].
-    Only the chain's joints: a (Q, J, 3) lever, mostly zeros, cost more to clear and read
-    than to compute (issue 39). Scalar loops: numba's ``@`` on 3-vectors allocates and calls
-    BLAS."""
+    Only the chain's joints, and for each bone the chain's places it moves, listed once per
+    model: a (Q, J, 3) lever, mostly zeros, and a test of every bone against every joint cost
+    more than the sums (issue 39). Scalar loops: numba's ``@`` on 3-vectors allocates and
+    calls BLAS."""
     for q in range(rest.shape[0]):
         posed[q] = 0.0
         posed_normals[q] = 0.0
-        links = chain_count[q]
-        for u in range(links):
+        for u in range(chain_count[q]):
             lever[q, u] = 0.0
-        for b in range(bone_index.shape[1]):
+        for t in range(slot_count[q]):
+            b = slots[q, t]
             w = bone_weight[q, b]
-            if w == 0.0:
-                continue
             k = bone_index[q, b]
             for a in range(3):
                 moved = joints[k, a]
@@ -237,14 +252,13 @@ def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations
                     turned += rotations[k, a, c] * normals[q, c]
                 posed[q, a] += w * moved
                 posed_normals[q, a] += w * turned
-                for u in range(links):
-                    if below[k, chain_joints[q, u]]:
-                        lever[q, u, a] += w * moved
+                for e in range(link_count[q, t]):
+                    lever[q, links[q, t, e], a] += w * moved
         norm = np.sqrt(posed_normals[q, 0] ** 2 + posed_normals[q, 1] ** 2
                        + posed_normals[q, 2] ** 2)
         for a in range(3):
             posed_normals[q, a] /= norm
-        for u in range(links):
+        for u in range(chain_count[q]):
             j = chain_joints[q, u]
             for a in range(3):
                 lever[q, u, a] -= chain_reach[q, u] * joints[j, a]
@@ -552,9 +566,10 @@ def _robust_weight(distance, width):
 
 @kernel
 def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, parents,
-                     chain_joints, chain_count, chain_reach, below, cloud, cloud_origin,
-                     cloud_cell, cloud_dims, cloud_order, cloud_starts, robust_width,
-                     model_to_cloud, model_stride, pull_weight, pull_goal, local, root, joints):
+                     chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                     link_count, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                     cloud_starts, robust_width, model_to_cloud, model_stride, pull_weight,
+                     pull_goal, local, root, joints):
     """``fit_pose``'s Gauss-Newton steps, in place on ``local`` (J, 3, 3) and ``root`` (3,);
     ``joints`` (J, 3) gets the result's; returns the cost measured before the last step."""
     count, bodies = rest.shape[0], tpose.shape[0]
@@ -569,8 +584,8 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
     for _ in range(iterations):
         _forward_kernel(local, root, tpose, parents, rotations, joints)
         _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
-                            chain_joints, chain_count, chain_reach, below, posed,
-                            posed_normals, lever)
+                            chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                            link_count, posed, posed_normals, lever)
         paired, targets, weights, cost = _surface_pairs_kernel(
             posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
             robust_width, model_to_cloud, model_stride)
@@ -634,7 +649,15 @@ class Chains(NamedTuple):
     joints: np.ndarray      # (Q, L) int64 ascending, padded with -1 (L: the longest chain)
     count: np.ndarray       # (Q,) int64 how many
     reach: np.ndarray       # (Q, L) the sum of the point's bone weights at or below each
-    below: np.ndarray       # (J, J) bool below[k, j]: joint k is j or a descendant of j
+    slots: np.ndarray       # (Q, B) int64 its bone slots of weight > 0, ascending, padded -1
+    slot_count: np.ndarray  # (Q,) int64 how many
+    links: np.ndarray       # (Q, B, L) int64 per slot, the chain's places at or above its
+    link_count: np.ndarray  # (Q, B) int64 bone, ascending, padded -1; and how many
+
+    def arguments(self):
+        """As ``_pose_points_kernel`` takes them."""
+        return (self.count, self.reach, self.joints, self.slots, self.slot_count, self.links,
+                self.link_count)
 
 
 _CHAINS = {}
@@ -646,14 +669,16 @@ def model_chains(model):
     key = (id(model.bone_index), id(model.bone_weight))
     kept = _CHAINS.get(key)
     if kept is None or kept[0] is not model.bone_index or kept[1] is not model.bone_weight:
-        count = len(model.bone_index)
+        count, slots = model.bone_index.shape
         joints, reach = np.empty((count, NUM_JOINTS), np.int64), np.empty((count, NUM_JOINTS))
-        links, below = np.empty(count, np.int64), np.empty((NUM_JOINTS, NUM_JOINTS), np.bool_)
-        _chains_kernel(model.bone_index, model.bone_weight, _PARENTS, below, joints, links,
-                       reach)
-        width = max(int(links.max()), 1)
-        chains = Chains(np.ascontiguousarray(joints[:, :width]), links,
-                        np.ascontiguousarray(reach[:, :width]), below)
+        links = np.empty((count, slots, NUM_JOINTS), np.int64)
+        arrays = (joints, np.empty(count, np.int64), reach, np.empty((count, slots), np.int64),
+                  np.empty(count, np.int64), links, np.empty((count, slots), np.int64))
+        _chains_kernel(model.bone_index, model.bone_weight, _PARENTS, *arrays)
+        width = max(int(arrays[1].max()), 1)
+        chains = Chains(np.ascontiguousarray(joints[:, :width]), arrays[1],
+                        np.ascontiguousarray(reach[:, :width]), *arrays[3:5],
+                        np.ascontiguousarray(links[:, :, :width]), arrays[6])
         if len(_CHAINS) >= 4:
             _CHAINS.clear()
         kept = _CHAINS[key] = (model.bone_index, model.bone_weight, chains)
@@ -673,8 +698,7 @@ def pose_model(model, rest, tpose_joints, rotations, joints):
     posed = Posed(np.empty((count, 3)), np.empty((count, 3)),
                   np.empty((count, chains.joints.shape[1], 3)), chains)
     _pose_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, model.normals,
-                        rotations, joints, chains.joints, chains.count, chains.reach,
-                        chains.below, *posed[:3])
+                        rotations, joints, *chains.arguments(), *posed[:3])
     return posed
 
 
@@ -727,8 +751,7 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
     chains = model_chains(model)
     cost = _fit_pose_kernel(
         settings.iterations, rest, tpose_joints, model.bone_index, model.bone_weight,
-        model.normals, _PARENTS, chains.joints, chains.count, chains.reach, chains.below,
-        cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
+        model.normals, _PARENTS, *chains.arguments(), cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
         float(settings.model_to_cloud), int(settings.model_stride), float(pull_weight),
         np.zeros((NUM_JOINTS, 3)) if pull_goal is None else np.asarray(pull_goal, np.float64),
