@@ -175,56 +175,6 @@ def _forward_kernel(local, root, tpose, parents, rotations, joints):
 
 
 @kernel
-def _chains_kernel(bone_index, bone_weight, parents, joints, count, reach, slots, slot_count,
-                   links, link_count):
-    """Each model point's chain (``Chains``): the joints that move it, ascending, with the sum
-    of its bones' weights at or below each; its bone slots of weight > 0, and for each the
-    places in the chain of the joints at or above its bone."""
-    bodies = parents.shape[0]
-    below = np.empty((bodies, bodies), np.bool_)      # below[k, j]: k is j or a descendant
-    below[:] = False
-    for k in range(bodies):
-        j = k
-        while j >= 0:
-            below[k, j] = True
-            j = parents[j]
-    full = np.empty(bodies)
-    for q in range(bone_index.shape[0]):
-        full[:] = 0.0
-        slot_count[q] = 0
-        for b in range(bone_index.shape[1]):
-            w = bone_weight[q, b]
-            if w == 0.0:
-                continue
-            slots[q, slot_count[q]] = b
-            slot_count[q] += 1
-            j = bone_index[q, b]
-            while j >= 0:
-                full[j] += w
-                j = parents[j]
-        count[q] = 0
-        for j in range(bodies):
-            if full[j] > 0.0:
-                joints[q, count[q]] = j
-                reach[q, count[q]] = full[j]
-                count[q] += 1
-        for u in range(count[q], joints.shape[1]):
-            joints[q, u] = -1
-            reach[q, u] = 0.0
-        for t in range(slots.shape[1]):
-            link_count[q, t] = 0
-            for u in range(links.shape[2]):
-                links[q, t, u] = -1
-            if t < slot_count[q]:
-                for u in range(count[q]):
-                    if below[bone_index[q, slots[q, t]], joints[q, u]]:
-                        links[q, t, link_count[q, t]] = u
-                        link_count[q, t] += 1
-            else:
-                slots[q, t] = -1
-
-
-@kernel
 def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
                         chain_count, chain_reach, chain_joints, slots, slot_count, links,
                         link_count, posed, posed_normals, lever):
@@ -645,7 +595,7 @@ def forward(local, root, tpose_joints):
 
 
 class Chains(NamedTuple):
-    """The joints that move each model point (``_chains_kernel``): a body model's, once."""
+    """The joints that move each model point (``model_chains``): a body model's, once."""
     joints: np.ndarray      # (Q, L) int64 ascending, padded with -1 (L: the longest chain)
     count: np.ndarray       # (Q,) int64 how many
     reach: np.ndarray       # (Q, L) the sum of the point's bone weights at or below each
@@ -665,24 +615,48 @@ _CHAINS = {}
 
 def model_chains(model):
     """``Chains`` of a body model, computed on its first use and kept (for a few models, by
-    their bone arrays' identity)."""
+    their bone arrays' identity). In NumPy, once: a kernel would cost its compile (0.5 s)."""
     key = (id(model.bone_index), id(model.bone_weight))
     kept = _CHAINS.get(key)
     if kept is None or kept[0] is not model.bone_index or kept[1] is not model.bone_weight:
-        count, slots = model.bone_index.shape
-        joints, reach = np.empty((count, NUM_JOINTS), np.int64), np.empty((count, NUM_JOINTS))
-        links = np.empty((count, slots, NUM_JOINTS), np.int64)
-        arrays = (joints, np.empty(count, np.int64), reach, np.empty((count, slots), np.int64),
-                  np.empty(count, np.int64), links, np.empty((count, slots), np.int64))
-        _chains_kernel(model.bone_index, model.bone_weight, _PARENTS, *arrays)
-        width = max(int(arrays[1].max()), 1)
-        chains = Chains(np.ascontiguousarray(joints[:, :width]), arrays[1],
-                        np.ascontiguousarray(reach[:, :width]), *arrays[3:5],
-                        np.ascontiguousarray(links[:, :, :width]), arrays[6])
+        chains = _chains(model.bone_index, model.bone_weight)
         if len(_CHAINS) >= 4:
             _CHAINS.clear()
         kept = _CHAINS[key] = (model.bone_index, model.bone_weight, chains)
     return kept[2]
+
+
+def _chains(bone_index, bone_weight):
+    below = np.zeros((NUM_JOINTS, NUM_JOINTS), np.bool_)     # below[k, j]: k is j or below j
+    for k in range(NUM_JOINTS):
+        j = k
+        while j >= 0:
+            below[k, j] = True
+            j = PARENTS[j]
+    active = bone_weight != 0.0                                          # (Q, B)
+    full = np.zeros((len(bone_index), NUM_JOINTS))
+    for b in range(bone_index.shape[1]):      # slot by slot: the sums in the kernels' order
+        full += np.where(active[:, b, None] & below[bone_index[:, b]], bone_weight[:, b, None],
+                         0.0)
+
+    def first(mask):
+        """Per row (last axis), the places where ``mask`` holds, ascending, padded with -1."""
+        count = mask.sum(-1)
+        places = np.argsort(~mask, axis=-1, kind="stable")
+        return np.where(np.arange(mask.shape[-1]) < count[..., None], places, -1), count
+
+    joints, count = first(full > 0.0)
+    width = max(int(count.max()), 1)
+    joints = np.ascontiguousarray(joints[:, :width])
+    reach = np.where(joints >= 0, np.take_along_axis(full, np.maximum(joints, 0), 1), 0.0)
+    slots, slot_count = first(active)
+    bones = np.take_along_axis(bone_index, np.maximum(slots, 0), 1)      # (Q, B)
+    moves = (below[bones[:, :, None], np.maximum(joints, 0)[:, None, :]]
+             & (slots >= 0)[:, :, None] & (joints >= 0)[:, None, :])    # (Q, B, L)
+    links, link_count = first(moves)
+    as_int = functools.partial(np.ascontiguousarray, dtype=np.int64)
+    return Chains(as_int(joints), as_int(count), np.ascontiguousarray(reach), as_int(slots),
+                  as_int(slot_count), as_int(links), as_int(link_count))
 
 
 class Posed(NamedTuple):

@@ -136,7 +136,7 @@ def _sort_into_cells(points, origin, cell, dims, order, starts):
 def _nearest_kernel(points, origin, cell, dims, order, starts, queries, distances, indices):
     for m in range(len(queries)):
         best, best_index = _search(points, origin, cell, dims, order, starts, queries[m, 0],
-                                   queries[m, 1], queries[m, 2], np.inf, -1, 0)
+                                   queries[m, 1], queries[m, 2], np.inf, -1, np.int64(0))
         distances[m] = np.sqrt(best)
         indices[m] = best_index
 
@@ -146,9 +146,9 @@ def _search(points, origin, cell, dims, order, starts, x, y, z, best, best_index
     """The ring search for (x, y, z) from ring ``ring`` on, whose inner rings are done and
     gave the squared distance ``best`` to point ``best_index`` (inf and -1: none) ->
     (squared distance, index) of the nearest point."""
-    home0 = _home(x, origin[0], cell, dims[0])
-    home1 = _home(y, origin[1], cell, dims[1])
-    home2 = _home(z, origin[2], cell, dims[2])
+    home0 = min(max(int(np.floor((x - origin[0]) / cell)), 0), dims[0] - 1)
+    home1 = min(max(int(np.floor((y - origin[1]) / cell)), 0), dims[1] - 1)
+    home2 = min(max(int(np.floor((z - origin[2]) / cell)), 0), dims[2] - 1)
     while True:
         for i in range(max(home0 - ring, 0), min(home0 + ring, dims[0] - 1) + 1):
             # A cell whose box lies farther than the best so far holds nothing nearer: skipped,
@@ -187,7 +187,9 @@ def _search(points, origin, cell, dims, order, starts, x, y, z, best, best_index
 def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries, stride,
                               distances, indices, back_distances, back_indices):
     """``nearest_both_ways`` on arrays, the queries' nearest grid points wanted at every
-    ``stride``-th query only (the others' are the nearest among the pairs, maybe none: inf)."""
+    ``stride``-th query only (the others' are the nearest among the pairs, maybe none: inf).
+    The helpers' ring arguments are int64, not literals: a literal compiles them again."""
+    one, two = np.int64(1), np.int64(2)
     cells = len(starts) - 1
     query_order, query_starts = np.empty(len(queries), np.int64), np.empty(cells + 1, np.int64)
     query_starts[:] = 0
@@ -205,29 +207,55 @@ def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries
         for j in range(dims[1]):
             for k in range(dims[2]):
                 c = (i * dims[1] + j) * dims[2] + k
-                # A cell's grid points two at a time: each run of queries is walked once for
-                # both (half the loops' overhead). A query still meets them in the same order.
+                low, high = max(k - 1, 0), min(k + 1, dims[2] - 1) + 1
+                # The cell's grid points two at a time against the queries in the 3 x 3 x 3
+                # cells around it (an odd one out paired with a point at infinity): each run
+                # of queries walked once for both. A query meets them in the same order.
                 for s in range(starts[c], starts[c + 1], 2):
                     n, other = order[s], order[min(s + 1, starts[c + 1] - 1)]
+                    x, y, z = points[n, 0], points[n, 1], points[n, 2]
+                    x2, y2, z2 = np.inf, np.inf, np.inf
                     if s + 1 < starts[c + 1]:
-                        _pairs_two(points, dims, i, j, k, n, other, sorted_queries, query_starts,
-                                   best, best_index, back_distances, back_indices)
-                    else:
-                        _pairs_one(points, dims, i, j, k, n, sorted_queries, query_starts,
-                                   best, best_index, back_distances, back_indices)
-                    # Its pairs are all in: exact if the nearest lies within the faces of the
-                    # 3 x 3 x 3 cells around its own, else search on from ring 2.
+                        x2, y2, z2 = points[other, 0], points[other, 1], points[other, 2]
+                    own, own_index, own2, own_index2 = np.inf, -1, np.inf, -1
+                    for u in range(max(i - 1, 0), min(i + 1, dims[0] - 1) + 1):
+                        for v in range(max(j - 1, 0), min(j + 1, dims[1] - 1) + 1):
+                            row = (u * dims[1] + v) * dims[2]     # k - 1..k + 1: one run
+                            # As slices indexed from 0: numba then knows the index is not
+                            # negative and skips its wraparound arithmetic (a fifth of the
+                            # instructions here).
+                            first, last = query_starts[row + low], query_starts[row + high]
+                            run, run_best, run_index = (sorted_queries[first:last],
+                                                        best[first:last],
+                                                        best_index[first:last])
+                            for e in range(last - first):
+                                qx, qy, qz = run[e, 0], run[e, 1], run[e, 2]
+                                d = (qx - x) ** 2 + (qy - y) ** 2 + (qz - z) ** 2
+                                d2 = (qx - x2) ** 2 + (qy - y2) ** 2 + (qz - z2) ** 2
+                                if d < own:
+                                    own, own_index = d, first + e
+                                if d2 < own2:
+                                    own2, own_index2 = d2, first + e
+                                if d < run_best[e]:
+                                    run_best[e], run_index[e] = d, n
+                                if d2 < run_best[e]:
+                                    run_best[e], run_index[e] = d2, other
                     for g in range(s, min(s + 2, starts[c + 1])):
                         n = order[g]
-                        if back_indices[n] >= 0:               # its sorted place -> its index
-                            back_indices[n] = query_order[back_indices[n]]
+                        if g > s:
+                            own, own_index = own2, own_index2
+                        if own_index >= 0:                    # its sorted place -> its index
+                            own_index = query_order[own_index]
+                        # Exact if the nearest lies within the faces of the 3 x 3 x 3 cells
+                        # around its own, else search on from ring 2.
                         x, y, z = points[n, 0], points[n, 1], points[n, 2]
-                        if not _settled(x, y, z, origin, cell, dims, i, j, k,
-                                        back_distances[n], back_indices[n]):
-                            back_distances[n], back_indices[n] = _search(
-                                queries, origin, cell, dims, query_order, query_starts, x, y,
-                                z, back_distances[n], back_indices[n], 2)
-                        back_distances[n] = np.sqrt(back_distances[n])
+                        if not (_whole_grid(dims, i, j, k, one) or (
+                                own_index >= 0 and own <= _beyond(x, y, z, origin, cell, dims,
+                                                                  i, j, k, one) ** 2)):
+                            own, own_index = _search(queries, origin, cell, dims, query_order,
+                                                     query_starts, x, y, z, own, own_index,
+                                                     two)
+                        back_distances[n], back_indices[n] = np.sqrt(own), own_index
     for i in range(dims[0]):
         for j in range(dims[1]):
             for k in range(dims[2]):
@@ -235,84 +263,13 @@ def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries
                 for t in range(query_starts[c], query_starts[c + 1]):
                     m = query_order[t]
                     x, y, z = queries[m, 0], queries[m, 1], queries[m, 2]
-                    if m % stride == 0 and not _settled(x, y, z, origin, cell, dims, i, j, k,
-                                                        best[t], best_index[t]):
+                    if m % stride == 0 and not (_whole_grid(dims, i, j, k, one) or (
+                            best_index[t] >= 0 and best[t] <= _beyond(
+                                x, y, z, origin, cell, dims, i, j, k, one) ** 2)):
                         best[t], best_index[t] = _search(points, origin, cell, dims, order,
                                                          starts, x, y, z, best[t],
-                                                         best_index[t], 2)
+                                                         best_index[t], two)
                     distances[m], indices[m] = np.sqrt(best[t]), best_index[t]
-
-
-@kernel
-def _pairs_one(points, dims, i, j, k, n, sorted_queries, query_starts, best, best_index,
-               back_distances, back_indices):
-    """Grid point n (in cell i, j, k) against the queries in the 3 x 3 x 3 cells around it:
-    its nearest of them (squared distance, the query's place in the sorted order; -1: none)
-    into back_*, and each of them takes n if nearer than its best."""
-    x, y, z = points[n, 0], points[n, 1], points[n, 2]
-    own, own_index = np.inf, -1
-    low, high = max(k - 1, 0), min(k + 1, dims[2] - 1) + 1
-    for u in range(max(i - 1, 0), min(i + 1, dims[0] - 1) + 1):
-        for v in range(max(j - 1, 0), min(j + 1, dims[1] - 1) + 1):
-            row = (u * dims[1] + v) * dims[2]               # k - 1..k + 1: one run
-            # The run as slices indexed from 0: numba then knows the index is not negative
-            # and skips its wraparound arithmetic (a fifth of the instructions here).
-            first, last = query_starts[row + low], query_starts[row + high]
-            run, run_best, run_index = (sorted_queries[first:last], best[first:last],
-                                        best_index[first:last])
-            for e in range(last - first):
-                d = ((run[e, 0] - x) ** 2 + (run[e, 1] - y) ** 2 + (run[e, 2] - z) ** 2)
-                if d < own:
-                    own, own_index = d, first + e
-                if d < run_best[e]:
-                    run_best[e], run_index[e] = d, n
-    back_distances[n], back_indices[n] = own, own_index
-
-
-@kernel
-def _pairs_two(points, dims, i, j, k, n, other, sorted_queries, query_starts, best,
-               best_index, back_distances, back_indices):
-    """``_pairs_one`` for grid points n and then ``other`` of the same cell, in one walk."""
-    x, y, z = points[n, 0], points[n, 1], points[n, 2]
-    x2, y2, z2 = points[other, 0], points[other, 1], points[other, 2]
-    own, own_index, own2, own_index2 = np.inf, -1, np.inf, -1
-    low, high = max(k - 1, 0), min(k + 1, dims[2] - 1) + 1
-    for u in range(max(i - 1, 0), min(i + 1, dims[0] - 1) + 1):
-        for v in range(max(j - 1, 0), min(j + 1, dims[1] - 1) + 1):
-            row = (u * dims[1] + v) * dims[2]
-            first, last = query_starts[row + low], query_starts[row + high]
-            run, run_best, run_index = (sorted_queries[first:last], best[first:last],
-                                        best_index[first:last])
-            for e in range(last - first):
-                qx, qy, qz = run[e, 0], run[e, 1], run[e, 2]
-                d = (qx - x) ** 2 + (qy - y) ** 2 + (qz - z) ** 2
-                d2 = (qx - x2) ** 2 + (qy - y2) ** 2 + (qz - z2) ** 2
-                if d < own:
-                    own, own_index = d, first + e
-                if d2 < own2:
-                    own2, own_index2 = d2, first + e
-                if d < run_best[e]:
-                    run_best[e], run_index[e] = d, n
-                if d2 < run_best[e]:
-                    run_best[e], run_index[e] = d2, other
-    back_distances[n], back_indices[n] = own, own_index
-    back_distances[other], back_indices[other] = own2, own_index2
-
-
-@kernel
-def _settled(x, y, z, origin, cell, dims, home0, home1, home2, best, best_index):
-    """Whether the squared distance ``best`` (to point ``best_index``, -1: none) found in the
-    3 x 3 x 3 cells around (x, y, z)'s own, (home0, home1, home2), is its nearest for sure."""
-    if _whole_grid(dims, home0, home1, home2, 1):
-        return True
-    return best_index >= 0 and best <= _beyond(x, y, z, origin, cell, dims, home0, home1,
-                                               home2, 1) ** 2
-
-
-@kernel
-def _home(x, origin, cell, count):
-    """The cell along one axis that coordinate x falls in, clamped to the grid."""
-    return min(max(int(np.floor((x - origin) / cell)), 0), count - 1)
 
 
 @kernel
