@@ -135,21 +135,45 @@ def _sort_into_cells(points, origin, cell, dims, order, starts):
 @kernel
 def _nearest_kernel(points, origin, cell, dims, order, starts, queries, distances, indices):
     for m in range(len(queries)):
-        best, best_index = _search(points, origin, cell, dims, order, starts, queries[m, 0],
-                                   queries[m, 1], queries[m, 2], np.inf, -1, np.int64(0))
+        x, y, z = queries[m, 0], queries[m, 1], queries[m, 2]
+        best, best_index = _search(
+            points, origin, cell, dims, order, starts, x, y, z,
+            min(max(int(np.floor((x - origin[0]) / cell)), 0), dims[0] - 1),
+            min(max(int(np.floor((y - origin[1]) / cell)), 0), dims[1] - 1),
+            min(max(int(np.floor((z - origin[2]) / cell)), 0), dims[2] - 1),
+            np.inf, -1, np.int64(-1))
         distances[m] = np.sqrt(best)
         indices[m] = best_index
 
 
 @kernel
-def _search(points, origin, cell, dims, order, starts, x, y, z, best, best_index, ring):
-    """The ring search for (x, y, z) from ring ``ring`` on, whose inner rings are done and
-    gave the squared distance ``best`` to point ``best_index`` (inf and -1: none) ->
-    (squared distance, index) of the nearest point."""
-    home0 = min(max(int(np.floor((x - origin[0]) / cell)), 0), dims[0] - 1)
-    home1 = min(max(int(np.floor((y - origin[1]) / cell)), 0), dims[1] - 1)
-    home2 = min(max(int(np.floor((z - origin[2]) / cell)), 0), dims[2] - 1)
+def _search(points, origin, cell, dims, order, starts, x, y, z, home0, home1, home2, best,
+            best_index, done):
+    """The ring search for (x, y, z), in cell (home0, home1, home2) (clamped to the grid),
+    whose rings 0 to ``done`` are searched (-1: none) and gave the squared distance ``best``
+    to point ``best_index`` (inf and -1: none) -> (squared distance, index) of the nearest
+    point. After ring r, a point not yet seen lies beyond a face of the box of cells within r
+    of the query's that is not the grid's border: the search ends once the best is within
+    the nearest such face, or the box covers the grid."""
+    ring = done
     while True:
+        if ring >= 0:
+            beyond = np.inf
+            if home0 - ring > 0:
+                beyond = min(beyond, x - (origin[0] + (home0 - ring) * cell))
+            if home0 + ring < dims[0] - 1:
+                beyond = min(beyond, origin[0] + (home0 + ring + 1) * cell - x)
+            if home1 - ring > 0:
+                beyond = min(beyond, y - (origin[1] + (home1 - ring) * cell))
+            if home1 + ring < dims[1] - 1:
+                beyond = min(beyond, origin[1] + (home1 + ring + 1) * cell - y)
+            if home2 - ring > 0:
+                beyond = min(beyond, z - (origin[2] + (home2 - ring) * cell))
+            if home2 + ring < dims[2] - 1:
+                beyond = min(beyond, origin[2] + (home2 + ring + 1) * cell - z)
+            if beyond == np.inf or (best_index >= 0 and best <= beyond * beyond):
+                return best, best_index
+        ring += 1
         for i in range(max(home0 - ring, 0), min(home0 + ring, dims[0] - 1) + 1):
             # A cell whose box lies farther than the best so far holds nothing nearer: skipped,
             # axis by axis.
@@ -175,12 +199,6 @@ def _search(points, origin, cell, dims, order, starts, x, y, z, best, best_index
                             if d < best:
                                 best, best_index = d, n
                     k += 1 if whole else 2 * ring
-        if best_index >= 0 and best <= _beyond(x, y, z, origin, cell, dims, home0, home1,
-                                               home2, ring) ** 2:
-            return best, best_index
-        if _whole_grid(dims, home0, home1, home2, ring):
-            return best, best_index
-        ring += 1
 
 
 @kernel
@@ -188,8 +206,8 @@ def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries
                               distances, indices, back_distances, back_indices):
     """``nearest_both_ways`` on arrays, the queries' nearest grid points wanted at every
     ``stride``-th query only (the others' are the nearest among the pairs, maybe none: inf).
-    The helpers' ring arguments are int64, not literals: a literal compiles them again."""
-    one, two = np.int64(1), np.int64(2)
+    ``_search``'s ring argument is an int64, not a literal: a literal would compile it again."""
+    one = np.int64(1)
     cells = len(starts) - 1
     query_order, query_starts = np.empty(len(queries), np.int64), np.empty(cells + 1, np.int64)
     query_starts[:] = 0
@@ -246,15 +264,11 @@ def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries
                             own, own_index = own2, own_index2
                         if own_index >= 0:                    # its sorted place -> its index
                             own_index = query_order[own_index]
-                        # Exact if the nearest lies within the faces of the 3 x 3 x 3 cells
-                        # around its own, else search on from ring 2.
-                        x, y, z = points[n, 0], points[n, 1], points[n, 2]
-                        if not (_whole_grid(dims, i, j, k, one) or (
-                                own_index >= 0 and own <= _beyond(x, y, z, origin, cell, dims,
-                                                                  i, j, k, one) ** 2)):
-                            own, own_index = _search(queries, origin, cell, dims, query_order,
-                                                     query_starts, x, y, z, own, own_index,
-                                                     two)
+                        # Rings 0 and 1 are done: exact if the nearest lies within the
+                        # faces of the 3 x 3 x 3 cells around its own, else it searches on.
+                        own, own_index = _search(queries, origin, cell, dims, query_order,
+                                                 query_starts, points[n, 0], points[n, 1],
+                                                 points[n, 2], i, j, k, own, own_index, one)
                         back_distances[n], back_indices[n] = np.sqrt(own), own_index
     for i in range(dims[0]):
         for j in range(dims[1]):
@@ -262,13 +276,11 @@ def _nearest_both_ways_kernel(points, origin, cell, dims, order, starts, queries
                 c = (i * dims[1] + j) * dims[2] + k
                 for t in range(query_starts[c], query_starts[c + 1]):
                     m = query_order[t]
-                    x, y, z = queries[m, 0], queries[m, 1], queries[m, 2]
-                    if m % stride == 0 and not (_whole_grid(dims, i, j, k, one) or (
-                            best_index[t] >= 0 and best[t] <= _beyond(
-                                x, y, z, origin, cell, dims, i, j, k, one) ** 2)):
+                    if m % stride == 0:
                         best[t], best_index[t] = _search(points, origin, cell, dims, order,
-                                                         starts, x, y, z, best[t],
-                                                         best_index[t], two)
+                                                         starts, queries[m, 0], queries[m, 1],
+                                                         queries[m, 2], i, j, k, best[t],
+                                                         best_index[t], one)
                     distances[m], indices[m] = np.sqrt(best[t]), best_index[t]
 
 
@@ -282,32 +294,3 @@ def _gap(x, low, cell):
     if x > low + cell + slack:
         return (x - low - cell - slack) ** 2
     return 0.0
-
-
-@kernel
-def _beyond(x, y, z, origin, cell, dims, home0, home1, home2, ring):
-    """The distance from (x, y, z) to the nearest face of the box of cells within ``ring`` of
-    its own that is not the grid's border (inf: none): a point not in the box lies beyond one
-    such face, so at least this far away."""
-    beyond = np.inf
-    if home0 - ring > 0:
-        beyond = min(beyond, x - (origin[0] + (home0 - ring) * cell))
-    if home0 + ring < dims[0] - 1:
-        beyond = min(beyond, origin[0] + (home0 + ring + 1) * cell - x)
-    if home1 - ring > 0:
-        beyond = min(beyond, y - (origin[1] + (home1 - ring) * cell))
-    if home1 + ring < dims[1] - 1:
-        beyond = min(beyond, origin[1] + (home1 + ring + 1) * cell - y)
-    if home2 - ring > 0:
-        beyond = min(beyond, z - (origin[2] + (home2 - ring) * cell))
-    if home2 + ring < dims[2] - 1:
-        beyond = min(beyond, origin[2] + (home2 + ring + 1) * cell - z)
-    return beyond
-
-
-@kernel
-def _whole_grid(dims, home0, home1, home2, ring):
-    """Whether the box of cells within ``ring`` of (home0, home1, home2) covers the grid."""
-    return (home0 - ring <= 0 and home0 + ring >= dims[0] - 1 and home1 - ring <= 0
-            and home1 + ring >= dims[1] - 1 and home2 - ring <= 0
-            and home2 + ring >= dims[2] - 1)
