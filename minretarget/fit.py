@@ -39,11 +39,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ._jit import kernel
-from .analytic import analytic_rotations
+from .analytic import _analytic_frame
 from .conventions import JOINT_INDEX, NUM_JOINTS, PARENTS
-from .nearest import _build_grid_kernel, _nearest_kernel, build_grid
-from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_one,
-                         quaternion_to_matrix)
+from .nearest import _nearest_both_ways_kernel, _nearest_kernel, build_grid
+from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_kernel,
+                         _quaternion_to_matrix_one)
 from .sampling import seeded_subset
 from .validation import as_float32_array
 
@@ -205,20 +205,23 @@ def _forward_kernel(local, root, tpose, parents, rotations, joints):
 
 @kernel
 def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
-                        parents, posed, posed_normals, lever, reach):
-    """LBS of the model's points, and each point's lever about each joint:
-    lever[q, j] = sum over the bones k at or below j of w_qk (bone k's move of q - joint j),
-    reach[q, j] = sum of those w_qk; turning joint j by d moves q by d x lever[q, j].
-    Written with scalar loops: numba's ``@`` on 3-vectors allocates and calls BLAS."""
-    lever[:] = 0.0
-    reach[:] = 0.0
+                        chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                        link_count, posed, posed_normals, lever):
+    """LBS of the model's points, and each point's lever about each joint of its chain
+    (``Chains``): lever[q, u] = sum over the bones k at or below joint j = chain_joints[q, u]
+    of w_qk (bone k's move of q - joint j), so that turning j by d moves q by d x lever[q, u].
+    Only the chain's joints, and for each bone the chain's places it moves, listed once per
+    model: a (Q, J, 3) lever, mostly zeros, and a test of every bone against every joint cost
+    more than the sums (issue 39). Scalar loops: numba's ``@`` on 3-vectors allocates and
+    calls BLAS."""
     for q in range(rest.shape[0]):
         posed[q] = 0.0
         posed_normals[q] = 0.0
-        for b in range(bone_index.shape[1]):
+        for u in range(chain_count[q]):
+            lever[q, u] = 0.0
+        for t in range(slot_count[q]):
+            b = slots[q, t]
             w = bone_weight[q, b]
-            if w == 0.0:
-                continue
             k = bone_index[q, b]
             for a in range(3):
                 moved = joints[k, a]
@@ -228,44 +231,41 @@ def _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations
                     turned += rotations[k, a, c] * normals[q, c]
                 posed[q, a] += w * moved
                 posed_normals[q, a] += w * turned
-                j = k
-                while j >= 0:
-                    lever[q, j, a] += w * moved
-                    j = parents[j]
-            j = k
-            while j >= 0:
-                reach[q, j] += w
-                j = parents[j]
+                for e in range(link_count[q, t]):
+                    lever[q, links[q, t, e], a] += w * moved
         norm = np.sqrt(posed_normals[q, 0] ** 2 + posed_normals[q, 1] ** 2
                        + posed_normals[q, 2] ** 2)
         for a in range(3):
             posed_normals[q, a] /= norm
-        for j in range(lever.shape[1]):
+        for u in range(chain_count[q]):
+            j = chain_joints[q, u]
             for a in range(3):
-                lever[q, j, a] -= reach[q, j] * joints[j, a]
+                lever[q, u, a] -= chain_reach[q, u] * joints[j, a]
 
 
 @kernel
-def _plane_row(q, target, weight, posed, posed_normals, lever, reach, row, columns):
-    """One pair's weighted point-to-plane row: row . step = the change of sqrt(w) n . (x - y);
-    fills ``row`` (PARAMETERS,) where it is not zero, lists those entries in ``columns`` and
-    returns (their count, sqrt(w) n . (x - y))."""
+def _plane_row(q, target, weight, posed, posed_normals, lever, chain_joints, chain_count,
+               entries, columns):
+    """One pair's weighted point-to-plane row: row . step = the change of sqrt(w) n . (x - y).
+    Its entries that are not zero go to ``entries``, their columns (ascending, by 3 x 3
+    blocks: the translation, then each joint of the point's chain) to ``columns``; returns
+    (their count, sqrt(w) n . (x - y))."""
     s = np.sqrt(weight)
     n = posed_normals[q]
     count = 0
     for a in range(3):
-        row[a] = s * n[a]
+        entries[count] = s * n[a]
         columns[count] = a
         count += 1
-    for j in range(lever.shape[1]):
-        if reach[q, j] > 0.0:
-            l = lever[q, j]                            # d(n . x)/d(turn j) = lever x n
-            row[3 + 3 * j] = s * (l[1] * n[2] - l[2] * n[1])
-            row[4 + 3 * j] = s * (l[2] * n[0] - l[0] * n[2])
-            row[5 + 3 * j] = s * (l[0] * n[1] - l[1] * n[0])
-            for a in range(3):
-                columns[count] = 3 + 3 * j + a
-                count += 1
+    for u in range(chain_count[q]):
+        j = chain_joints[q, u]
+        l = lever[q, u]                                # d(n . x)/d(turn j) = lever x n
+        entries[count] = s * (l[1] * n[2] - l[2] * n[1])
+        entries[count + 1] = s * (l[2] * n[0] - l[0] * n[2])
+        entries[count + 2] = s * (l[0] * n[1] - l[1] * n[0])
+        for a in range(3):
+            columns[count] = 3 + 3 * j + a
+            count += 1
     value = 0.0
     for a in range(3):
         value += n[a] * (posed[q, a] - target[a])
@@ -274,34 +274,57 @@ def _plane_row(q, target, weight, posed, posed_normals, lever, reach, row, colum
 
 @kernel
 def _plane_normal_equations_kernel(model_index, targets, weights, posed, posed_normals, lever,
-                                   reach, hessian, gradient):
+                                   chain_joints, chain_count, hessian, gradient):
     """The pairs' normal equations, added to a symmetric ``hessian``: hessian += sum row
     row^T, gradient += sum row value (rows as ``_plane_row``), by 3 x 3 blocks over the joints
-    that move each point (the translation as block 0): the upper blocks are summed, then
-    copied below. Not a BLAS product: at this size BLAS's threads cost more than they give."""
+    that move each point (the translation as block 0). The blocks on and above the diagonal
+    are summed in a packed copy, each block's 9 numbers in a row, then written back and
+    mirrored below: the same sums in the same order as into the dense matrix, in 30 % less
+    time with the block's 9 products written out (issue 39). Not a BLAS product: at this size
+    BLAS's threads cost more than they give."""
     blocks = hessian.shape[0] // 3
-    row = np.empty(hessian.shape[0])
-    row[:] = 0.0
+    first = np.empty(blocks, np.int64)          # packed[first[u] + v]: block (u, v), v >= u
+    packed = np.empty((blocks * (blocks + 1) // 2, 9))
+    for u in range(blocks):
+        first[u] = u * blocks - u * (u - 1) // 2 - u
+        for v in range(u, blocks):
+            for x in range(3):
+                for y in range(3):
+                    packed[first[u] + v, 3 * x + y] = hessian[3 * u + x, 3 * v + y]
+    entries = np.empty(hessian.shape[0])
     columns = np.empty(hessian.shape[0], np.int64)
     moved = np.empty(blocks, np.int64)
     for i in range(model_index.shape[0]):
         count, value = _plane_row(model_index[i], targets[i], weights[i], posed, posed_normals,
-                                  lever, reach, row, columns)
+                                  lever, chain_joints, chain_count, entries, columns)
         for u in range(count // 3):
             moved[u] = columns[3 * u] // 3
         for u in range(count // 3):
             a = 3 * moved[u]
-            for x in range(3):
-                gradient[a + x] += row[a + x] * value
+            e0, e1, e2 = entries[3 * u], entries[3 * u + 1], entries[3 * u + 2]
+            gradient[a] += e0 * value
+            gradient[a + 1] += e1 * value
+            gradient[a + 2] += e2 * value
+            start = first[moved[u]]
             for v in range(u, count // 3):
-                b = 3 * moved[v]
-                for x in range(3):
-                    for y in range(3):
-                        hessian[a + x, b + y] += row[a + x] * row[b + y]
-    for a in range(hessian.shape[0]):       # blocks above the diagonal, mirrored below
-        for b in range(a):
-            if a // 3 != b // 3:
-                hessian[a, b] = hessian[b, a]
+                f0, f1, f2 = entries[3 * v], entries[3 * v + 1], entries[3 * v + 2]
+                block = start + moved[v]
+                packed[block, 0] += e0 * f0
+                packed[block, 1] += e0 * f1
+                packed[block, 2] += e0 * f2
+                packed[block, 3] += e1 * f0
+                packed[block, 4] += e1 * f1
+                packed[block, 5] += e1 * f2
+                packed[block, 6] += e2 * f0
+                packed[block, 7] += e2 * f1
+                packed[block, 8] += e2 * f2
+    for u in range(blocks):
+        for v in range(u, blocks):
+            for x in range(3):
+                for y in range(3):
+                    hessian[3 * u + x, 3 * v + y] = packed[first[u] + v, 3 * x + y]
+                    if v > u:
+                        hessian[3 * v + y, 3 * u + x] = packed[first[u] + v, 3 * x + y]
 
 
 @kernel
@@ -393,20 +416,20 @@ def _pull_normal_equations_kernel(joints, goal, weight, parents, hessian, gradie
 def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
                           cloud_starts, robust_width, model_to_cloud, model_stride):
     """``surface_terms`` on arrays: -> model index (N,), targets (N, 3), weights (N,), cost."""
-    origin, cell, dims, order, starts = _build_grid_kernel(posed, 0.0)
+    # Both ways in one pass over the cloud's grid (``nearest``): each cloud point's nearest
+    # model point (inward), each stride-th model point's nearest cloud point (outward).
+    nearest_distance, nearest_index = np.empty(len(posed)), np.empty(len(posed), np.int64)
     inward_distance = np.empty(len(cloud))
     inward_index = np.empty(len(cloud), np.int64)
-    _nearest_kernel(posed, origin, cell, dims, order, starts, cloud, inward_distance,
-                    inward_index)
+    _nearest_both_ways_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                              cloud_starts, posed, model_stride, nearest_distance,
+                              nearest_index, inward_distance, inward_index)
     outward_count = (len(posed) + model_stride - 1) // model_stride   # every stride-th
-    outward_points = np.empty((outward_count, 3))
-    for i in range(outward_count):
-        for a in range(3):
-            outward_points[i, a] = posed[i * model_stride, a]
     outward_distance = np.empty(outward_count)
     outward_nearest = np.empty(outward_count, np.int64)
-    _nearest_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
-                    outward_points, outward_distance, outward_nearest)
+    for i in range(outward_count):
+        outward_distance[i] = nearest_distance[i * model_stride]
+        outward_nearest[i] = nearest_index[i * model_stride]
     # Pairs that share a model point share its row (``_plane_row`` depends on the point alone):
     # summed per model point, their weights and weighted targets give the same normal
     # equations from at most Q rows instead of P + Q / stride.
@@ -522,16 +545,17 @@ def _robust_weight(distance, width):
 
 @kernel
 def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, parents,
-                     cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
-                     robust_width, model_to_cloud, model_stride, pull_weight, pull_goal,
-                     local, root, joints):
+                     chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                     link_count, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                     cloud_starts, robust_width, model_to_cloud, model_stride, pull_weight,
+                     pull_goal, local, root, joints):
     """``fit_pose``'s Gauss-Newton steps, in place on ``local`` (J, 3, 3) and ``root`` (3,);
     ``joints`` (J, 3) gets the result's; returns the cost measured before the last step."""
     count, bodies = rest.shape[0], tpose.shape[0]
     parameters = 3 + 3 * bodies
     rotations = np.empty((bodies, 3, 3))
     posed, posed_normals = np.empty((count, 3)), np.empty((count, 3))
-    lever, reach = np.empty((count, bodies, 3)), np.empty((count, bodies))
+    lever = np.empty((count, chain_joints.shape[1], 3))
     turned = np.empty_like(local)
     hessian = np.empty((parameters, parameters))
     gradient, step = np.empty(parameters), np.empty(parameters)
@@ -539,14 +563,15 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
     for _ in range(iterations):
         _forward_kernel(local, root, tpose, parents, rotations, joints)
         _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
-                            parents, posed, posed_normals, lever, reach)
+                            chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                            link_count, posed, posed_normals, lever)
         paired, targets, weights, cost = _surface_pairs_kernel(
             posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
             robust_width, model_to_cloud, model_stride)
         hessian[:] = 0.0
         gradient[:] = 0.0
         _plane_normal_equations_kernel(paired, targets, weights, posed, posed_normals, lever,
-                                       reach, hessian, gradient)
+                                       chain_joints, chain_count, hessian, gradient)
         if pull_weight > 0.0:
             _pull_normal_equations_kernel(joints, pull_goal, pull_weight, parents, hessian,
                                           gradient)
@@ -626,10 +651,21 @@ def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, l
 
 # ----------------------------------------------------------------------------- posing
 
+_SHAPED = [None]
+
+
 def shaped(model, shape):
-    """(K,) shape coefficients -> T-pose surface points (Q, 3) and joints (J, 3), metres."""
-    return (model.points + np.tensordot(shape, model.points_basis, 1),
-            model.joints + np.tensordot(shape, model.joints_basis, 1))
+    """(K,) shape coefficients -> T-pose surface points (Q, 3) and joints (J, 3), metres. The
+    last answer is kept: after the calibration every frame asks for the same shape (the
+    arrays are shared: not to be written to)."""
+    shape = np.asarray(shape, np.float64)
+    key = shape.tobytes()
+    kept = _SHAPED[0]
+    if kept is None or kept[0] is not model or kept[1] != key:
+        rest = model.points + np.tensordot(shape, model.points_basis, 1)
+        kept = _SHAPED[0] = (model, key, (rest, model.joints
+                                          + np.tensordot(shape, model.joints_basis, 1)))
+    return kept[2]
 
 
 def forward(local, root, tpose_joints):
@@ -640,20 +676,85 @@ def forward(local, root, tpose_joints):
     return rotations, joints
 
 
+class Chains(NamedTuple):
+    """The joints that move each model point (``model_chains``): a body model's, once."""
+    joints: np.ndarray      # (Q, L) int64 ascending, padded with -1 (L: the longest chain)
+    count: np.ndarray       # (Q,) int64 how many
+    reach: np.ndarray       # (Q, L) the sum of the point's bone weights at or below each
+    slots: np.ndarray       # (Q, B) int64 its bone slots of weight > 0, ascending, padded -1
+    slot_count: np.ndarray  # (Q,) int64 how many
+    links: np.ndarray       # (Q, B, L) int64 per slot, the chain's places at or above its
+    link_count: np.ndarray  # (Q, B) int64 bone, ascending, padded -1; and how many
+
+    def arguments(self):
+        """As ``_pose_points_kernel`` takes them."""
+        return (self.count, self.reach, self.joints, self.slots, self.slot_count, self.links,
+                self.link_count)
+
+
+_CHAINS = {}
+
+
+def model_chains(model):
+    """``Chains`` of a body model, computed on its first use and kept (for a few models, by
+    their bone arrays' identity). In NumPy, once: a kernel would cost its compile (0.5 s)."""
+    key = (id(model.bone_index), id(model.bone_weight))
+    kept = _CHAINS.get(key)
+    if kept is None or kept[0] is not model.bone_index or kept[1] is not model.bone_weight:
+        chains = _chains(model.bone_index, model.bone_weight)
+        if len(_CHAINS) >= 4:
+            _CHAINS.clear()
+        kept = _CHAINS[key] = (model.bone_index, model.bone_weight, chains)
+    return kept[2]
+
+
+def _chains(bone_index, bone_weight):
+    below = np.zeros((NUM_JOINTS, NUM_JOINTS), np.bool_)     # below[k, j]: k is j or below j
+    for k in range(NUM_JOINTS):
+        j = k
+        while j >= 0:
+            below[k, j] = True
+            j = PARENTS[j]
+    active = bone_weight != 0.0                                          # (Q, B)
+    full = np.zeros((len(bone_index), NUM_JOINTS))
+    for b in range(bone_index.shape[1]):      # slot by slot: the sums in the kernels' order
+        full += np.where(active[:, b, None] & below[bone_index[:, b]], bone_weight[:, b, None],
+                         0.0)
+
+    def first(mask):
+        """Per row (last axis), the places where ``mask`` holds, ascending, padded with -1."""
+        count = mask.sum(-1)
+        places = np.argsort(~mask, axis=-1, kind="stable")
+        return np.where(np.arange(mask.shape[-1]) < count[..., None], places, -1), count
+
+    joints, count = first(full > 0.0)
+    width = max(int(count.max()), 1)
+    joints = np.ascontiguousarray(joints[:, :width])
+    reach = np.where(joints >= 0, np.take_along_axis(full, np.maximum(joints, 0), 1), 0.0)
+    slots, slot_count = first(active)
+    bones = np.take_along_axis(bone_index, np.maximum(slots, 0), 1)      # (Q, B)
+    moves = (below[bones[:, :, None], np.maximum(joints, 0)[:, None, :]]
+             & (slots >= 0)[:, :, None] & (joints >= 0)[:, None, :])    # (Q, B, L)
+    links, link_count = first(moves)
+    as_int = functools.partial(np.ascontiguousarray, dtype=np.int64)
+    return Chains(as_int(joints), as_int(count), np.ascontiguousarray(reach), as_int(slots),
+                  as_int(slot_count), as_int(links), as_int(link_count))
+
+
 class Posed(NamedTuple):
     points: np.ndarray      # (Q, 3) posed surface points, metres
     normals: np.ndarray     # (Q, 3) their unit normals
-    lever: np.ndarray       # (Q, J, 3) see _pose_points_kernel
-    reach: np.ndarray       # (Q, J)
+    lever: np.ndarray       # (Q, L, 3) about each joint of the point's chain: see
+    chains: Chains          # _pose_points_kernel
 
 
 def pose_model(model, rest, tpose_joints, rotations, joints):
     """The model's points posed by LBS, with what their Jacobian needs (``Posed``)."""
-    count = len(rest)
+    count, chains = len(rest), model_chains(model)
     posed = Posed(np.empty((count, 3)), np.empty((count, 3)),
-                  np.empty((count, NUM_JOINTS, 3)), np.empty((count, NUM_JOINTS)))
+                  np.empty((count, chains.joints.shape[1], 3)), chains)
     _pose_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, model.normals,
-                        rotations, joints, _PARENTS, *posed)
+                        rotations, joints, *chains.arguments(), *posed[:3])
     return posed
 
 
@@ -723,9 +824,10 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
     local = np.array(local, np.float64, order="C")
     root = np.array(root, np.float64)
     joints = np.empty((NUM_JOINTS, 3))
+    chains = model_chains(model)
     cost = _fit_pose_kernel(
         settings.iterations, rest, tpose_joints, model.bone_index, model.bone_weight,
-        model.normals, _PARENTS, cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
+        model.normals, _PARENTS, *chains.arguments(), cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
         float(settings.model_to_cloud), int(settings.model_stride), float(pull_weight),
         np.zeros((NUM_JOINTS, 3)) if pull_goal is None else np.asarray(pull_goal, np.float64),
@@ -776,8 +878,14 @@ def settle_shape(model, shape, frames, settings):
 def local_from_joints(joints, tpose_joints):
     """Local rotations (J, 3, 3) that pose the model's T-pose like ``joints`` (J, 3)
     (``analytic.analytic_rotations``)."""
-    quaternions = analytic_rotations(joints.astype(np.float32), tpose_joints.astype(np.float32))
-    return quaternion_to_matrix(quaternions).astype(np.float64)
+    # analytic_rotations and quaternion_to_matrix's kernels, without their checks and
+    # reshapes (the joints are the runtime's own, checked): 5 us instead of 28, each frame
+    quaternions = np.empty((NUM_JOINTS, 4), np.float32)
+    _analytic_frame(joints.astype(np.float32), tpose_joints.astype(np.float32), quaternions,
+                    np.empty((NUM_JOINTS, 3, 3)))
+    matrices = np.empty((NUM_JOINTS, 3, 3), np.float32)
+    _quaternion_to_matrix_kernel(quaternions, matrices)
+    return matrices.astype(np.float64)
 
 
 def subsample(cloud, count, frame):

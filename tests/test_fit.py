@@ -7,7 +7,8 @@ import pytest
 from minretarget.nearest import build_grid
 
 from minretarget import fit
-from minretarget.conventions import NUM_JOINTS
+from minretarget.conventions import NUM_JOINTS, PARENTS
+from minretarget.analytic import analytic_rotations
 from minretarget.kinematics import quaternion_to_matrix
 from minretarget.pipeline import PipelineConfig
 
@@ -51,10 +52,45 @@ def test_forward_matches_twin(model):
     np.testing.assert_allclose(rotations, twin_rotations, atol=1e-6)
 
 
+def dense(posed):
+    """A ``Posed``'s lever over its chains as the twin's: lever (Q, J, 3) and reach (Q, J),
+    zero about the joints that do not move a point."""
+    chains = posed.chains
+    lever = np.zeros((len(posed.points), NUM_JOINTS, 3))
+    reach = np.zeros((len(posed.points), NUM_JOINTS))
+    for q, count in enumerate(chains.count):
+        lever[q, chains.joints[q, :count]] = posed.lever[q, :count]
+        reach[q, chains.joints[q, :count]] = chains.reach[q, :count]
+    return posed.points, posed.normals, lever, reach
+
+
+def test_model_chains_are_the_joints_that_move_each_point(model):
+    chains = fit.model_chains(model)
+    assert chains is fit.model_chains(model)                          # computed once
+
+    def at_or_above(k):
+        joints = set()
+        while k >= 0:
+            joints.add(int(k))
+            k = PARENTS[k]
+        return joints
+    for q in range(0, len(model.points), 7):
+        active = [b for b in range(model.bone_index.shape[1]) if model.bone_weight[q, b] > 0]
+        moving = set().union(*(at_or_above(model.bone_index[q, b]) for b in active))
+        count = chains.count[q]
+        assert list(chains.joints[q, :count]) == sorted(moving)
+        assert (chains.joints[q, count:] == -1).all()
+        assert list(chains.slots[q, :chains.slot_count[q]]) == active
+        for t, b in enumerate(active):
+            places = chains.links[q, t, :chains.link_count[q, t]]
+            assert list(chains.joints[q, places]) == sorted(at_or_above(model.bone_index[q, b]))
+
+
 def test_pose_model_matches_twin(model):
     _, rest, tpose, _, _, rotations, joints = posed_state(model)
     posed = fit.pose_model(model, rest, tpose, rotations, joints)
-    for got, want in zip(posed, twins.body_model_pose(model, rest, tpose, rotations, joints)):
+    for got, want in zip(dense(posed),
+                         twins.body_model_pose(model, rest, tpose, rotations, joints)):
         np.testing.assert_allclose(got, want, atol=1e-9)
 
 
@@ -62,10 +98,12 @@ def plane_rows(arguments):
     """Every pair's row and value, by ``fit._plane_row`` (the kernels' own)."""
     index = arguments[0]
     rows, values = np.zeros((len(index), fit.PARAMETERS)), np.empty(len(index))
-    columns = np.empty(fit.PARAMETERS, np.int64)
+    entries, columns = np.empty(fit.PARAMETERS), np.empty(fit.PARAMETERS, np.int64)
     for i, q in enumerate(index):
-        _, values[i] = fit._plane_row(q, arguments[1][i], arguments[2][i], *arguments[3:],
-                                      rows[i], columns)
+        count, values[i] = fit._plane_row(q, arguments[1][i], arguments[2][i], *arguments[3:],
+                                          entries, columns)
+        assert (np.diff(columns[:count]) > 0).all()
+        rows[i, columns[:count]] = entries[:count]
     return rows, values
 
 
@@ -90,7 +128,7 @@ def test_plane_rows_are_the_derivative_of_the_plane_distance(model):
     targets = posed.points[index] + rng.normal(scale=0.01, size=(40, 3))
     weights = rng.uniform(0.5, 2.0, 40)
     rows, values = plane_rows((index, targets, weights, posed.points, posed.normals,
-                               posed.lever, posed.reach))
+                               posed.lever, posed.chains.joints, posed.chains.count))
     normals = posed.normals[index]
 
     def plane_distance(local, root):
@@ -108,7 +146,8 @@ def test_normal_equations_are_the_rows_products(model):
     index = rng.integers(0, len(rest), 300)
     targets = posed.points[index] + rng.normal(scale=0.02, size=(300, 3))
     weights = rng.uniform(0.1, 1.0, 300)
-    arguments = (index, targets, weights, posed.points, posed.normals, posed.lever, posed.reach)
+    arguments = (index, targets, weights, posed.points, posed.normals, posed.lever,
+                 posed.chains.joints, posed.chains.count)
     rows, values = plane_rows(arguments)
     start = rng.normal(size=(fit.PARAMETERS, fit.PARAMETERS))
     start = start + start.T                                   # any symmetric matrix, added to
@@ -185,8 +224,8 @@ def test_surface_terms_summed_per_model_point_give_the_pairs_normal_equations(mo
     pairs = twins.surface_pairs(posed.points, cloud, settings.robust_width,
                                 settings.model_to_cloud, stride, fit.TRUNCATE)
     assert cost == pytest.approx(pairs[3], abs=1e-12)
-    got = twins.plane_normal_equations(index, targets, weights, *posed)
-    want = twins.plane_normal_equations(*pairs[:3], *posed)
+    got = twins.plane_normal_equations(index, targets, weights, *dense(posed))
+    want = twins.plane_normal_equations(*pairs[:3], *dense(posed))
     for got_part, want_part in zip(got, want):
         np.testing.assert_allclose(got_part, want_part, atol=1e-12)
 
@@ -491,3 +530,21 @@ def test_warm_up_does_not_warn_of_its_own_frames(tiny_weights, tiny_stream):
     with pytest.warns(FitWarning, match="frame 1: the source fit found no body"):
         for _ in range(2):
             retargeter.step(points)
+
+
+def test_shaped_keeps_its_last_answer_and_only_that(model):
+    first, second = np.full(len(model.points_basis), 0.5), np.full(len(model.points_basis), -1.0)
+    for shape in (first, second, first):
+        rest, tpose = fit.shaped(model, shape)
+        np.testing.assert_array_equal(rest, model.points + np.tensordot(shape, model.points_basis,
+                                                                        1))
+        np.testing.assert_array_equal(tpose, model.joints + np.tensordot(shape,
+                                                                         model.joints_basis, 1))
+    assert fit.shaped(model, first.copy())[0] is rest                  # kept, by value
+
+
+def test_local_from_joints_is_the_analytic_rotations(model):
+    _, _, tpose, _, _, _, joints = posed_state(model, seed=8)
+    want = quaternion_to_matrix(analytic_rotations(joints.astype(np.float32),
+                                                   tpose.astype(np.float32)))
+    np.testing.assert_array_equal(fit.local_from_joints(joints, tpose), want.astype(np.float64))
