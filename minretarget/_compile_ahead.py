@@ -1,24 +1,27 @@
-"""The cold start split over two processes: while a retargeter compiles the stages that read
-the cloud (SKR, the refiner, the source fit), a second process compiles the stages after
-them (smoothing to LBS) into numba's on-disk cache, where the first one then finds them.
+"""The cold start split over two processes: while a retargeter's first frame compiles its
+stages first to last, a second process compiles the stages after the cloud's (smoothing to
+LBS) last to first into numba's on-disk cache, where the first one finds them when it gets
+there; they meet in the middle, and the first frame stops it.
 
 numba compiles on one core at a time (its compiler holds a global lock), and a fresh
 install's first frame compiles about 130 kernel signatures; on a machine with two or more
-cores the second process takes about half of them off the critical path. It starts only
-when numba first compiles one of minretarget's kernels in a process (a warm cache never
-starts it), and at most once per pipeline config per process; it shares numba's cache
-location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``) through its environment.
-Set ``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the calling process.
+cores the second process takes a share of them off the critical path without either waiting
+for the other. It starts only when numba first compiles one of minretarget's kernels in a
+process (a warm cache never starts it), and at most once per pipeline config per process;
+it shares numba's cache location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``)
+through its environment. Set ``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the
+calling process.
 
 Its stages see the shipped weights and, as a target, the shipped body model's mean body
-(its skeleton given, SKIN run on it): numba compiles per argument type, not value, so any
-weights and target of the same dtypes give the same kernels. If it fails or is not done in ``WAIT_S``, the caller compiles what
-is missing itself, as without it.
+(its skeleton given, SKIN run on it), and a T-pose frame: numba compiles per argument type,
+not value, so any weights, target and frame of the same dtypes and layouts give the same
+kernels. What it has not compiled when it is stopped, or if it fails, the caller compiles.
 
     python -m minretarget._compile_ahead '<PipelineConfig JSON>'
 """
 import gc
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -28,10 +31,11 @@ import numpy as np
 from .fit import body_model, local_from_joints
 from .nearest import build_grid, nearest
 from .pipeline import PipelineConfig
+from .stages import Frame
 from .weights import load_weights
 
 SWITCH = "MINRETARGET_COMPILE_AHEAD"
-WAIT_S = 300.0
+STOP_S = 2.0          # seconds a stopped process is given to leave before it is killed
 
 _started = set()        # the configs (JSON) a second process was started for in this process
 
@@ -66,17 +70,38 @@ def start(config):
         return None
 
 
-def join(process):
-    """Wait for ``process`` (from ``start``) to finish; past ``WAIT_S`` it is stopped, and
-    the caller compiles what it has not."""
+def stop(process):
+    """Stop ``process`` (from ``start``), done or not: the calling process has compiled the
+    rest itself. Asked first (it leaves no half-written file in numba's cache), then killed."""
+    process.terminate()
     try:
-        process.wait(timeout=WAIT_S)
+        process.wait(timeout=STOP_S)
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
 
 
+class _Stopped(Exception):
+    """Raised in this process by ``stop``'s SIGTERM: numba removes a cache file it was
+    writing on any Exception."""
+
+
+def _raise_stopped(signum, frame):
+    raise _Stopped
+
+
+def later_stages_frame(tpose_joints):
+    """A frame with every field the stages after the cloud's read, of the types the calling
+    process's frames have (numba compiles per type, not value): the T-pose, unturned."""
+    count = len(tpose_joints)
+    rotations = np.zeros((count, 4), dtype=np.float32)
+    rotations[:, 0] = 1.0                            # identity quaternions (w, x, y, z)
+    return Frame(0, None, tpose_joints.copy(), rotations, np.zeros(3, dtype=np.float32),
+                 tpose_joints.copy(), np.tile(np.eye(3, dtype=np.float32), (count, 1, 1)))
+
+
 def main(argv=None):
+    signal.signal(signal.SIGTERM, _raise_stopped)
     # This process only compiles: Python's cyclic garbage collector would take about 8 % of
     # its time (docs/runtime_notes.md), and nothing it makes lives long.
     gc.disable()
@@ -89,13 +114,17 @@ def main(argv=None):
     # First what the calling process comes to last before the later stages: SKIN, at the
     # end of its set_target, and (with the fit) the fit's pose of its model like the
     # reading (``local_from_joints``) and its cloud's grid and nearest points on its first
-    # frame; then the later stages.
+    # frame.
     retargeter.set_target(points, tpose_joints=tpose_joints)
     if config.fit_source is not None:
         local_from_joints(tpose_joints, tpose_joints)
         cloud = model.points.copy()                 # float64, as the fit's subsample
         nearest(build_grid(cloud), cloud)
-    retargeter.warm_up(skeleton=True)
+    # Then the stages after the cloud's, last to first, each at a stream's start and after
+    # it: the calling process compiles them first to last, and finds the rest here.
+    for stage in reversed([stage for stage in retargeter.stages if not stage.reads_cloud]):
+        state, _ = stage.step(None, later_stages_frame(tpose_joints))
+        stage.step(state, later_stages_frame(tpose_joints))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """The cold start's second process (``minretarget._compile_ahead``)."""
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -15,8 +16,9 @@ from minretarget.retargeter import Retargeter
 from minretarget.sources import load_sample
 
 # A fresh process with an empty numba cache: the real trigger (numba's first compile in
-# set_target) starts the second process; the stages after the cloud's must then compile
-# nothing in the first one (they come from the cache the second one wrote).
+# set_target) starts the second process; let it finish first, and the stages after the
+# cloud's must then compile nothing in the first one: the second one's frames and target
+# have the stream's types, so what it wrote to the cache is what the stream asks for.
 COLD_START = textwrap.dedent("""
     import json, sys
     from numba.core import event
@@ -41,6 +43,7 @@ COLD_START = textwrap.dedent("""
     source, target, faces, _ = load_sample()
     retargeter = Retargeter.from_weights(None, sys.argv[1], warn=False)
     retargeter.set_target(target, faces)
+    started[0].wait()
     for stage in retargeter.stages:            # mark where the cloud's stages end
         def step(state, frame, stage=stage, inner=stage.step):
             tail[0] = tail[0] or not stage.reads_cloud
@@ -48,14 +51,14 @@ COLD_START = textwrap.dedent("""
         stage.step = step
     retargeter.step(next(source.frames))
     print(json.dumps({"started": [p is not None for p in started],
-                      "joined": retargeter._compiler is None,
+                      "stopped": retargeter._compiler is None,
                       "returncode": started[0].returncode if started and started[0] else None,
                       "tail_compiled": compiled}))
 """)
 
 
 @pytest.mark.parametrize("name", ["fitted", "regressed"])
-def test_cold_start_takes_the_later_stages_from_the_second_process(tmp_path, name):
+def test_the_second_process_compiles_the_later_stages_of_the_stream(tmp_path, name):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     env.pop(_compile_ahead.SWITCH, None)
     env.pop("NUMBA_DISABLE_JIT", None)
@@ -63,7 +66,7 @@ def test_cold_start_takes_the_later_stages_from_the_second_process(tmp_path, nam
                             capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     run = json.loads(result.stdout.splitlines()[-1])
-    assert run["started"] == [True] and run["joined"] and run["returncode"] == 0, run
+    assert run["started"] == [True] and run["stopped"] and run["returncode"] == 0, run
     assert run["tail_compiled"] == [], run
 
 
@@ -88,15 +91,34 @@ def test_start_is_switched_off_by_the_environment_and_once_per_config(monkeypatc
     assert kwargs["env"]["PYTHONPATH"].split(os.pathsep)[0] == package_root   # this package
 
 
-def test_join_stops_a_process_that_overruns(monkeypatch):
-    monkeypatch.setattr(_compile_ahead, "WAIT_S", 0.2)
-    process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+def test_stop_asks_then_kills(monkeypatch):
+    # Asked: the second process's SIGTERM handler raises, so it leaves as an exception does
+    # (numba then removes a cache file it was writing), not killed.
+    listening = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
+        import signal, sys, time
+        from minretarget._compile_ahead import _raise_stopped
+        signal.signal(signal.SIGTERM, _raise_stopped)
+        print("ready", flush=True)
+        time.sleep(60)
+    """)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert listening.stdout.readline() == "ready\n"
+    _compile_ahead.stop(listening)
+    assert listening.returncode == 1 and "_Stopped" in listening.stderr.read()
+    # Deaf to it: killed after STOP_S.
+    monkeypatch.setattr(_compile_ahead, "STOP_S", 0.2)
+    deaf = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
+        import signal, time
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        print("ready", flush=True)
+        time.sleep(60)
+    """)], stdout=subprocess.PIPE, text=True)
+    assert deaf.stdout.readline() == "ready\n"
     began = time.perf_counter()
-    _compile_ahead.join(process)
-    assert process.returncode is not None and time.perf_counter() - began < 30
+    _compile_ahead.stop(deaf)
+    assert deaf.returncode == -signal.SIGKILL and time.perf_counter() - began < 30
 
 
-def test_a_stream_waits_for_it_before_the_first_stage_after_the_cloud(monkeypatch):
+def test_a_stream_never_waits_for_it_and_stops_it_after_its_first_frame():
     source, target, faces, _ = load_sample()
     clouds = [next(source.frames) for _ in range(2)]
     retargeter = Retargeter.from_weights(None, "regressed", warn=False)
@@ -107,11 +129,19 @@ def test_a_stream_waits_for_it_before_the_first_stage_after_the_cloud(monkeypatc
             seen.append(stage.name)
             return inner(state, frame)
         stage.step = step
-    waits = []
-    retargeter._compiler = type("Process", (), {"wait": lambda self, timeout=None:
-                                                waits.append(list(seen))})()
+    calls = []
+
+    class Process:
+        def terminate(self):
+            calls.append(("terminate", list(seen)))
+
+        def wait(self, timeout=None):
+            calls.append(("wait", list(seen)))
+
+    retargeter._compiler = Process()
     retargeter.step(clouds[0])
-    cloud_stages = [stage.name for stage in retargeter.stages if stage.reads_cloud]
-    assert waits == [cloud_stages] and retargeter._compiler is None
+    every_stage = [stage.name for stage in retargeter.stages]
+    assert calls == [("terminate", every_stage), ("wait", every_stage)]
+    assert retargeter._compiler is None
     retargeter.step(clouds[1])                            # once only
-    assert len(waits) == 1
+    assert len(calls) == 2
