@@ -5,8 +5,11 @@ there; they meet in the middle, and the first frame stops it.
 
 numba compiles on one core at a time (its compiler holds a global lock), and a fresh
 install's first frame compiles about 130 kernel signatures; on a machine with two or more
-cores the second process takes a share of them off the critical path without either waiting
-for the other. It starts only when numba first compiles one of minretarget's kernels in a
+cores the second process takes a share of them off the critical path. Before the later
+stages it compiles what the first process meets last on its way to them (SKIN at the end of
+``set_target``; with the source fit, its pose from a reading and the end of its Gauss-Newton
+step). It says which later stage it is compiling, and the stream waits for that one rather
+than compile it too. It starts only when numba first compiles one of minretarget's kernels in a
 process (a warm cache never starts it), and at most once per pipeline config per process;
 it shares numba's cache location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``)
 through its environment. Set ``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the
@@ -24,18 +27,23 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
 
-from .fit import body_model, local_from_joints
-from .nearest import build_grid, nearest
+from .conventions import NUM_JOINTS
+from .fit import (_PARENTS, PARAMETERS, _pull_normal_equations_kernel,
+                  _solve_positive_definite, apply_step, body_model, local_from_joints,
+                  shape_rows)
 from .pipeline import PipelineConfig
 from .stages import Frame
 from .weights import load_weights
 
 SWITCH = "MINRETARGET_COMPILE_AHEAD"
 STOP_S = 2.0          # seconds a stopped process is given to leave before it is killed
+WAIT_S = 60.0         # the most a stream waits for a stage being compiled there
+BEGIN, END = "begin", "end"     # what it says of each later stage
 
 _started = set()        # the configs (JSON) a second process was started for in this process
 
@@ -49,7 +57,7 @@ def _cores():
 
 
 def start(config):
-    """A second process compiling the skeleton stages of ``config`` (a ``PipelineConfig``),
+    """A ``SecondProcess`` compiling the later stages of ``config`` (a ``PipelineConfig``),
     or None: switched off, one core, no Python executable known, or already started for
     this config in this process."""
     key = config.to_json()
@@ -62,23 +70,52 @@ def start(config):
     package_root = str(Path(__file__).resolve().parents[1])
     path = os.pathsep.join(filter(None, (package_root, os.environ.get("PYTHONPATH"))))
     try:
-        return subprocess.Popen(
+        process = subprocess.Popen(
             [sys.executable, "-m", "minretarget._compile_ahead", key],
             env={**os.environ, SWITCH: "0", "PYTHONPATH": path}, stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     except OSError:                                 # cannot start a process here: go on alone
         return None
+    return SecondProcess(process)
 
 
-def stop(process):
-    """Stop ``process`` (from ``start``), done or not: the calling process has compiled the
-    rest itself. Asked first (it leaves no half-written file in numba's cache), then killed."""
-    process.terminate()
-    try:
-        process.wait(timeout=STOP_S)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+class SecondProcess:
+    """The second process as the stream sees it: which later stages it has begun and ended
+    (it says so on its standard output, a line each), so that the stream waits for one it is
+    compiling (nearly done by then) rather than compile it a second time."""
+
+    def __init__(self, process):
+        self.process = process
+        self._said = threading.Condition()
+        self._begun, self._ended, self._gone = set(), set(), False
+        threading.Thread(target=self._listen, name="minretarget-compile-ahead",
+                         daemon=True).start()
+
+    def _listen(self):
+        for line in self.process.stdout:
+            word, _, stage = line.strip().partition(" ")
+            with self._said:
+                (self._begun if word == BEGIN else self._ended).add(stage)
+                self._said.notify_all()
+        with self._said:
+            self._gone = True
+            self._said.notify_all()
+
+    def await_stage(self, name):
+        """Return once stage ``name`` is not being compiled there (at most ``WAIT_S``)."""
+        with self._said:
+            if name in self._begun:
+                self._said.wait_for(lambda: name in self._ended or self._gone, WAIT_S)
+
+    def stop(self):
+        """Stop it, done or not: the stream has compiled the rest itself. Asked first (it
+        leaves no half-written file in numba's cache), killed after ``STOP_S``."""
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=STOP_S)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
 
 
 class _Stopped(Exception):
@@ -100,6 +137,21 @@ def later_stages_frame(tpose_joints):
                  tpose_joints.copy(), np.tile(np.eye(3, dtype=np.float32), (count, 1, 1)))
 
 
+def _fit_tail(model):
+    """Compile what the fit's first frame meets last (the shape's rows, and the kernels that
+    a Gauss-Newton step, ``fit._fit_pose_kernel``, calls last), last first, with the
+    arguments' types it gives them: the stream meets them seconds into compiling the fit,
+    by which time they are in the cache. (The ones a step calls before them, the stream
+    would meet here being compiled: the two processes' shares of the work are even so.)"""
+    local = np.tile(np.eye(3), (NUM_JOINTS, 1, 1))
+    shape_rows(model, local, np.zeros(1, np.int64), np.zeros((1, 3)))
+    hessian, gradient = np.eye(PARAMETERS), np.zeros(PARAMETERS)
+    apply_step(local, np.zeros(3), local.copy(), gradient)
+    _solve_positive_definite(hessian.copy(), gradient, np.empty(PARAMETERS))
+    joints = np.zeros((NUM_JOINTS, 3))
+    _pull_normal_equations_kernel(joints, joints.copy(), 1.0, _PARENTS, hessian, gradient)
+
+
 def main(argv=None):
     signal.signal(signal.SIGTERM, _raise_stopped)
     # This process only compiles: Python's cyclic garbage collector would take about 8 % of
@@ -118,13 +170,14 @@ def main(argv=None):
     retargeter.set_target(points, tpose_joints=tpose_joints)
     if config.fit_source is not None:
         local_from_joints(tpose_joints, tpose_joints)
-        cloud = model.points.copy()                 # float64, as the fit's subsample
-        nearest(build_grid(cloud), cloud)
+        _fit_tail(model)
     # Then the stages after the cloud's, last to first, each at a stream's start and after
     # it: the calling process compiles them first to last, and finds the rest here.
     for stage in reversed([stage for stage in retargeter.stages if not stage.reads_cloud]):
+        print(BEGIN, stage.name, flush=True)
         state, _ = stage.step(None, later_stages_frame(tpose_joints))
         stage.step(state, later_stages_frame(tpose_joints))
+        print(END, stage.name, flush=True)
 
 
 if __name__ == "__main__":

@@ -130,7 +130,7 @@ class Retargeter:
             faces = faces.astype(np.int64) if len(faces) else None
         # A cold numba cache: a second process (``_compile_ahead``) compiles the stages after
         # the cloud's meanwhile, last to first, while the first frame compiles them first to
-        # last (``_fold`` stops it after that frame).
+        # last (``_fold`` waits for one it is compiling, and stops it after that frame).
         with on_first_compile(self._compile_ahead):
             if tpose_joints is None:
                 tpose_joints = self._reader(self.config.mirror_target).read(points)
@@ -237,12 +237,14 @@ class Retargeter:
         before = {} if self._state is None else self._state.stages
         after = {}
         for stage in stages:
+            if self._compiler is not None and not stage.reads_cloud:
+                self._compiler.await_stage(stage.name)
             state, frame = stage.step(before.get(stage.name), frame)
             if state is not None:
                 after[stage.name] = state
         self._state = StreamState(frame.index + 1, after)
         if self._compiler is not None:      # every stage compiled: it has nothing left to do
-            _compile_ahead.stop(self._compiler)
+            self._compiler.stop()
             self._compiler = None
         return frame
 

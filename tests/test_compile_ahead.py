@@ -43,7 +43,7 @@ COLD_START = textwrap.dedent("""
     source, target, faces, _ = load_sample()
     retargeter = Retargeter.from_weights(None, sys.argv[1], warn=False)
     retargeter.set_target(target, faces)
-    started[0].wait()
+    started[0].process.wait()
     for stage in retargeter.stages:            # mark where the cloud's stages end
         def step(state, frame, stage=stage, inner=stage.step):
             tail[0] = tail[0] or not stage.reads_cloud
@@ -52,7 +52,8 @@ COLD_START = textwrap.dedent("""
     retargeter.step(next(source.frames))
     print(json.dumps({"started": [p is not None for p in started],
                       "stopped": retargeter._compiler is None,
-                      "returncode": started[0].returncode if started and started[0] else None,
+                      "returncode": started[0].process.returncode if started and started[0]
+                                    else None,
                       "tail_compiled": compiled}))
 """)
 
@@ -79,16 +80,54 @@ def test_start_is_switched_off_by_the_environment_and_once_per_config(monkeypatc
     monkeypatch.setattr(_compile_ahead, "_cores", lambda: 1)
     assert _compile_ahead.start(config) is None                 # one core: nothing to gain
     monkeypatch.setattr(_compile_ahead, "_cores", lambda: 2)
-    launched = []
-    monkeypatch.setattr(_compile_ahead.subprocess, "Popen",
-                        lambda argv, **kwargs: launched.append((argv, kwargs)) or "process")
-    assert _compile_ahead.start(config) == "process"
+    launched, real_popen = [], subprocess.Popen
+
+    def popen(argv, **kwargs):
+        launched.append((argv, kwargs))
+        return real_popen([sys.executable, "-c", ""], stdout=subprocess.PIPE, text=True)
+    monkeypatch.setattr(_compile_ahead.subprocess, "Popen", popen)
+    second = _compile_ahead.start(config)
+    assert isinstance(second, _compile_ahead.SecondProcess)
     assert _compile_ahead.start(config) is None                 # once per config
+    second.stop()
     (argv, kwargs), = launched
     assert argv[1:] == ["-m", "minretarget._compile_ahead", config.to_json()]
     assert kwargs["env"][_compile_ahead.SWITCH] == "0"          # it starts none of its own
     package_root = str(Path(_compile_ahead.__file__).resolve().parents[1])
     assert kwargs["env"]["PYTHONPATH"].split(os.pathsep)[0] == package_root   # this package
+
+
+def _saying(script):
+    """A SecondProcess around a Python script (its lines on standard output are what the
+    stream hears)."""
+    return _compile_ahead.SecondProcess(subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(script)], stdout=subprocess.PIPE, text=True))
+
+
+def test_a_stream_waits_only_for_a_stage_being_compiled_there():
+    second = _saying("""
+        import time
+        print("end lbs", flush=True)
+        print("begin foot_lock", flush=True)
+        time.sleep(1.0)
+        print("end foot_lock", flush=True)
+        time.sleep(60)
+    """)
+    time.sleep(0.5)                 # it has said the first two lines
+    began = time.perf_counter()
+    second.await_stage("smrm")      # not begun there: the stream compiles it
+    second.await_stage("lbs")       # done there
+    assert time.perf_counter() - began < 0.3
+    second.await_stage("foot_lock")     # being compiled: wait for its end
+    waited = time.perf_counter() - began
+    assert 0.2 < waited < 30 and "foot_lock" in second._ended
+    second.stop()
+    gone = _saying("""
+        print("begin smrm", flush=True)
+    """)
+    gone.process.wait()
+    gone.await_stage("smrm")        # begun, never ended, gone: no wait
+    gone.stop()
 
 
 def test_stop_asks_then_kills(monkeypatch):
@@ -98,27 +137,27 @@ def test_stop_asks_then_kills(monkeypatch):
         import signal, sys, time
         from minretarget._compile_ahead import _raise_stopped
         signal.signal(signal.SIGTERM, _raise_stopped)
-        print("ready", flush=True)
+        print("ready", file=sys.stderr, flush=True)
         time.sleep(60)
     """)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert listening.stdout.readline() == "ready\n"
-    _compile_ahead.stop(listening)
+    assert listening.stderr.readline() == "ready\n"
+    _compile_ahead.SecondProcess(listening).stop()
     assert listening.returncode == 1 and "_Stopped" in listening.stderr.read()
     # Deaf to it: killed after STOP_S.
     monkeypatch.setattr(_compile_ahead, "STOP_S", 0.2)
     deaf = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
-        import signal, time
+        import signal, sys, time
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        print("ready", flush=True)
+        print("ready", file=sys.stderr, flush=True)
         time.sleep(60)
-    """)], stdout=subprocess.PIPE, text=True)
-    assert deaf.stdout.readline() == "ready\n"
+    """)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert deaf.stderr.readline() == "ready\n"
     began = time.perf_counter()
-    _compile_ahead.stop(deaf)
+    _compile_ahead.SecondProcess(deaf).stop()
     assert deaf.returncode == -signal.SIGKILL and time.perf_counter() - began < 30
 
 
-def test_a_stream_never_waits_for_it_and_stops_it_after_its_first_frame():
+def test_a_stream_asks_before_each_later_stage_and_stops_it_after_its_first_frame():
     source, target, faces, _ = load_sample()
     clouds = [next(source.frames) for _ in range(2)]
     retargeter = Retargeter.from_weights(None, "regressed", warn=False)
@@ -131,17 +170,19 @@ def test_a_stream_never_waits_for_it_and_stops_it_after_its_first_frame():
         stage.step = step
     calls = []
 
-    class Process:
-        def terminate(self):
-            calls.append(("terminate", list(seen)))
+    class Second:
+        def await_stage(self, name):
+            calls.append(("await", name, len(seen)))
 
-        def wait(self, timeout=None):
-            calls.append(("wait", list(seen)))
+        def stop(self):
+            calls.append(("stop", len(seen)))
 
-    retargeter._compiler = Process()
+    retargeter._compiler = Second()
     retargeter.step(clouds[0])
-    every_stage = [stage.name for stage in retargeter.stages]
-    assert calls == [("terminate", every_stage), ("wait", every_stage)]
+    names = [stage.name for stage in retargeter.stages]
+    later = [(place, name) for place, name in enumerate(names)
+             if not retargeter.stages[place].reads_cloud]
+    assert calls == [("await", name, place) for place, name in later] + [("stop", len(names))]
     assert retargeter._compiler is None
     retargeter.step(clouds[1])                            # once only
-    assert len(calls) == 2
+    assert len(calls) == len(later) + 1
