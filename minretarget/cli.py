@@ -565,7 +565,7 @@ def build_parser():
                          help="as for retarget")
     inspect.set_defaults(run=_inspect)
 
-    warmup = commands.add_parser("warmup", help="compile the kernels (about 30 s, once per "
+    warmup = commands.add_parser("warmup", help="compile the kernels (about 15-25 s, once per "
                                  "machine and release: later runs load them from a cache)")
     warmup.add_argument("--weights", default=None, help=WEIGHTS_HELP)
     warmup.set_defaults(run=_warmup)
