@@ -615,6 +615,11 @@ def main(argv=None):
                         help="score 16 dance and martial-arts trials of the training split on "
                              "held-out validation bodies instead (training.data.datasets."
                              "dance_sequences: 6,954 frames): motion validation lacks")
+    which.add_argument("--motions", action="store_true",
+                        help="score four trials of each other motion category of the training "
+                             "split (walks, runs, jumps, climbs, sports, sitting...) on "
+                             "held-out validation bodies instead (training.data.datasets."
+                             "motion_sequences: 28 trials, 4,883 frames)")
     parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS,
                         default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "
@@ -634,16 +639,19 @@ def main(argv=None):
     if args.from_json:
         given = [option for option, value in (
             ("--quick", args.quick), ("--validation", args.validation),
-            ("--dances", args.dances), ("--weights", args.weights),
+            ("--dances", args.dances), ("--motions", args.motions),
+            ("--weights", args.weights),
             ("--rows", args.rows != list(ROWS)), ("--build", args.build),
             ("--report", args.report)) if value]
         if given:
             parser.error(f"--from-json prints a saved run: {', '.join(given)} would not apply")
-    elif args.report and (args.validation or args.dances):
-        parser.error("--report is for the test split; --validation and --dances need none")
+    elif args.report and (args.validation or args.dances or args.motions):
+        parser.error("--report is for the test split; --validation, --dances and --motions "
+                     "need none")
     saved = load_results(args.from_json) if args.from_json else None
     split = (saved["split"] if saved else "validation" if args.validation
-             else "training dances" if args.dances else "test")
+             else "training dances" if args.dances
+             else "training motions" if args.motions else "test")
     if split == "test" and not saved:       # refused before anything is built or read
         refuse_test_split(parser, args)
     quick = saved.get("quick", False) if saved else args.quick
@@ -678,8 +686,10 @@ def main(argv=None):
     if split != "test" and not Path(args.cmu).is_dir():
         parser.error(f"--cmu {args.cmu}: no such folder (the {split} trials are read there)")
     if split != "test":
-        from training.data.datasets import dance_sequences, validation_sequences
-        held_out = (validation_sequences if args.validation else dance_sequences)(args.cmu)
+        from training.data.datasets import (dance_sequences, motion_sequences,
+                                            validation_sequences)
+        held_out = (validation_sequences if args.validation else dance_sequences
+                    if args.dances else motion_sequences)(args.cmu)
         loaders = [sequence.build for sequence in held_out]
         planned = [(sequence.name, sequence.frames) for sequence in held_out]
     else:

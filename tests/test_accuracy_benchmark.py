@@ -70,7 +70,8 @@ def test_from_json_prints_a_saved_run_and_adds_its_tables(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("pair", [["--validation", "--dances"], ["--quick", "--dances"],
-                                  ["--quick", "--validation"]])
+                                  ["--quick", "--validation"], ["--motions", "--dances"],
+                                  ["--validation", "--motions"]])
 def test_one_set_of_sequences_a_run(pair, capsys):
     with pytest.raises(SystemExit) as stop:
         accuracy.main(pair)
@@ -218,7 +219,7 @@ def test_the_test_split_is_refused_without_report(tmp_path, capsys, argv):
 
 
 def test_report_applies_to_the_test_split_only(tmp_path, capsys):
-    for split in ("--validation", "--dances"):
+    for split in ("--validation", "--dances", "--motions"):
         with pytest.raises(SystemExit) as stop:
             accuracy.main([split, "--report", "--cmu", str(tmp_path)])
         assert stop.value.code == 2 and "--report is for the test split" in \

@@ -333,6 +333,25 @@ def test_the_dance_set_is_training_motion_on_validation_bodies():
 
 
 @needs_walk
+def test_the_motion_set_is_every_other_training_category_on_validation_bodies():
+    from training.data.datasets import (DANCE_TRIALS, MOTION_CATEGORIES_LEFT_OUT,
+                                        VALIDATION_SUBJECTS, motion_sequences)
+    held_out = motion_sequences(CMU_DIR)
+    trials = [sequence.trial for sequence in held_out]
+    assert [sequence.build.args[1] for sequence in held_out] == list(range(len(trials)))
+    assert (len(trials), sum(sequence.frames for sequence in held_out)) == (28, 4883)
+    assert [t.name for t in trials] == [s.trial.name for s in motion_sequences(CMU_DIR)]
+    counts = {}
+    for trial in trials:
+        assert trial.split == "train" and trial.subject not in VALIDATION_SUBJECTS
+        assert trial.category not in MOTION_CATEGORIES_LEFT_OUT and trial.name not in BROKEN_TRIALS
+        assert trial.name not in DANCE_TRIALS
+        counts[trial.category] = counts.get(trial.category, 0) + 1
+    assert max(counts.values()) == 4 and {"walk", "sit", "climb", "jump"} <= set(counts)
+    assert len({t.name for t in trials}) == len(trials)
+
+
+@needs_walk
 def test_real_walk_maps_exactly_and_walks_forward():
     motion = load_motion(WALK)
     assert motion.category == "walk" and motion.source_fps == 120

@@ -527,8 +527,35 @@ def dance_sequences(cmu_dir, max_frames=600, points=2048):
                                  max_frames, points, seed=1)
 
 
+# Every other motion category of the training split (walks, runs, jumps, climbs, everyday,
+# sports, fights, sitting...), four trials of each drawn with a fixed seed, at most 240 frames
+# each: a selection set for what the dances and validation's two subjects rarely show (legs
+# crossing, say), on held-out bodies; SKR and the rest trained on these motions, on other
+# bodies, as with the dances.
+MOTION_CATEGORIES_LEFT_OUT = frozenset({"dance", "salsa", "martial"})     # the dances' own
+
+
+def motion_sequences(cmu_dir, per_category=4, max_frames=240, points=2048):
+    """Benchmark sequences of ``per_category`` trials of each motion category of the training
+    split but the dances' (``MOTION_CATEGORIES_LEFT_OUT``), not of the validation subjects,
+    drawn with a fixed seed (broken trials skipped), on held-out validation bodies, as
+    ``validation_sequences`` makes them (its seeds offset), as ``HeldOutSequence``s."""
+    by_category = {}
+    for trial in list_trials(cmu_dir):
+        if (trial.split == "train" and trial.subject not in VALIDATION_SUBJECTS
+                and trial.category not in MOTION_CATEGORIES_LEFT_OUT):
+            by_category.setdefault(trial.category, []).append(trial)
+    rng = np.random.default_rng(2)
+    chosen = []
+    for category in sorted(by_category):
+        trials = by_category[category]
+        chosen += [trials[i] for i in sorted(rng.permutation(len(trials))[:per_category])]
+    return _on_validation_bodies(list(enumerate(chosen)), max_frames, points, seed=2)
+
+
 class HeldOutSequence(NamedTuple):
-    """One sequence of ``validation_sequences`` or ``dance_sequences``, known before it is
+    """One sequence of ``validation_sequences``, ``dance_sequences`` or ``motion_sequences``,
+    known before it is
     built: a caller can check names and lengths (against a saved run, say) at once."""
     trial: Trial
     name: str            # the sequence's: the trial's, or "<trial>@<first frame>" for a run
