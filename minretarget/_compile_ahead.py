@@ -7,8 +7,8 @@ numba compiles on one core at a time (its compiler holds a global lock), and a f
 install's first frame compiles about 130 kernel signatures; on a machine with two or more
 cores the second process takes a share of them off the critical path. Before the later
 stages it compiles what the first process meets last on its way to them (SKIN at the end of
-``set_target``; with the source fit, its pose from a reading and the end of its Gauss-Newton
-step). It says which later stage it is compiling, and the stream waits for that one rather
+``set_target``; with the source fit, its pose from a reading, its shape's rows and the end
+of its Gauss-Newton step). It says which later stage it is compiling, and the stream waits for that one rather
 than compile it too. It starts only when numba first compiles one of minretarget's kernels in a
 process (a warm cache never starts it), and at most once per pipeline config per process;
 it shares numba's cache location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``)
@@ -33,9 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .conventions import NUM_JOINTS
-from .fit import (_PARENTS, PARAMETERS, _pull_normal_equations_kernel,
-                  _solve_positive_definite, apply_step, body_model, local_from_joints,
-                  shape_rows)
+from .fit import PARAMETERS, apply_step, body_model, local_from_joints, shape_rows
 from .pipeline import PipelineConfig
 from .stages import Frame
 from .weights import load_weights
@@ -138,18 +136,14 @@ def later_stages_frame(tpose_joints):
 
 
 def _fit_tail(model):
-    """Compile what the fit's first frame meets last (the shape's rows, and the kernels that
-    a Gauss-Newton step, ``fit._fit_pose_kernel``, calls last), last first, with the
-    arguments' types it gives them: the stream meets them seconds into compiling the fit,
-    by which time they are in the cache. (The ones a step calls before them, the stream
-    would meet here being compiled: the two processes' shares of the work are even so.)"""
+    """Compile what the fit's first frame meets last (the shape's rows, and the last kernel
+    of a Gauss-Newton step, ``fit._gauss_newton``), with the arguments' types it gives them:
+    the stream meets them seconds into the fit, by which time they are in the cache. (The
+    two processes' shares of the work are about even so: with more here, the stream waits
+    for the second process's SMRM.)"""
     local = np.tile(np.eye(3), (NUM_JOINTS, 1, 1))
     shape_rows(model, local, np.zeros(1, np.int64), np.zeros((1, 3)))
-    hessian, gradient = np.eye(PARAMETERS), np.zeros(PARAMETERS)
-    apply_step(local, np.zeros(3), local.copy(), gradient)
-    _solve_positive_definite(hessian.copy(), gradient, np.empty(PARAMETERS))
-    joints = np.zeros((NUM_JOINTS, 3))
-    _pull_normal_equations_kernel(joints, joints.copy(), 1.0, _PARENTS, hessian, gradient)
+    apply_step(local, np.zeros(3), local.copy(), np.zeros(PARAMETERS))
 
 
 def main(argv=None):

@@ -544,13 +544,32 @@ def _robust_weight(distance, width):
 
 
 @kernel
-def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, parents,
-                     chain_count, chain_reach, chain_joints, slots, slot_count, links,
-                     link_count, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
-                     cloud_starts, robust_width, model_to_cloud, model_stride, pull_weight,
-                     pull_goal, local, root, joints):
+def _damped_step_kernel(hessian, gradient, step):
+    """The Gauss-Newton step from the normal equations (``hessian`` is spent): Levenberg-
+    Marquardt's damping and a floor, the Cholesky solve, then the root's shift capped to
+    MAX_SHIFT and each joint's turn to MAX_TURN."""
+    parameters = hessian.shape[0]
+    for a in range(parameters):
+        hessian[a, a] += 1e-3 * hessian[a, a] + 1e-5
+    _solve_positive_definite(hessian, gradient, step)
+    for block in range(parameters // 3):
+        limit = MAX_SHIFT if block == 0 else MAX_TURN
+        norm = np.sqrt(step[3 * block] ** 2 + step[3 * block + 1] ** 2
+                       + step[3 * block + 2] ** 2)
+        if norm > limit:
+            for a in range(3):
+                step[3 * block + a] *= limit / norm
+
+
+def _gauss_newton(iterations, rest, tpose, bone_index, bone_weight, normals, parents,
+                  chain_count, chain_reach, chain_joints, slots, slot_count, links,
+                  link_count, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                  cloud_starts, robust_width, model_to_cloud, model_stride, pull_weight,
+                  pull_goal, local, root, joints):
     """``fit_pose``'s Gauss-Newton steps, in place on ``local`` (J, 3, 3) and ``root`` (3,);
-    ``joints`` (J, 3) gets the result's; returns the cost measured before the last step."""
+    ``joints`` (J, 3) gets the result's; returns the cost measured before the last step.
+    Python over the step's kernels, not one kernel around them: numba would compile such a
+    kernel with all of them linked in and optimised again (issue 40)."""
     count, bodies = rest.shape[0], tpose.shape[0]
     parameters = 3 + 3 * bodies
     rotations = np.empty((bodies, 3, 3))
@@ -575,23 +594,10 @@ def _fit_pose_kernel(iterations, rest, tpose, bone_index, bone_weight, normals, 
         if pull_weight > 0.0:
             _pull_normal_equations_kernel(joints, pull_goal, pull_weight, parents, hessian,
                                           gradient)
-        for a in range(parameters):           # Levenberg-Marquardt's damping, and a floor
-            hessian[a, a] += 1e-3 * hessian[a, a] + 1e-5
-        _solve_positive_definite(hessian, gradient, step)
-        for block in range(bodies + 1):       # the root's shift to at most MAX_SHIFT,
-            limit = MAX_SHIFT if block == 0 else MAX_TURN   # each joint's turn to MAX_TURN
-            norm = np.sqrt(step[3 * block] ** 2 + step[3 * block + 1] ** 2
-                           + step[3 * block + 2] ** 2)
-            if norm > limit:
-                for a in range(3):
-                    step[3 * block + a] *= limit / norm
+        _damped_step_kernel(hessian, gradient, step)
         _apply_step_kernel(local, rotations, step, parents, turned)
-        for j in range(bodies):               # local = turned, without a slice assignment
-            for a in range(3):
-                for b in range(3):
-                    local[j, a, b] = turned[j, a, b]
-        for a in range(3):
-            root[a] += step[a]
+        local[...] = turned
+        root += step[:3]
     _forward_kernel(local, root, tpose, parents, rotations, joints)
     return cost
 
@@ -825,7 +831,7 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
     root = np.array(root, np.float64)
     joints = np.empty((NUM_JOINTS, 3))
     chains = model_chains(model)
-    cost = _fit_pose_kernel(
+    cost = _gauss_newton(
         settings.iterations, rest, tpose_joints, model.bone_index, model.bone_weight,
         model.normals, _PARENTS, *chains.arguments(), cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
