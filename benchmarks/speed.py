@@ -24,7 +24,7 @@ One process, batch 1 streaming (one frame at a time, as online use), with N thre
   * numba's compile time with an empty cache and import + first frame from the on-disk cache,
     each in a fresh process, apart from the steady state;
   * resident memory along a 10,000-frame stream of the default pipeline (--quick: 2,000; the
-    sample's clouds over and over), which must stay flat;
+    sample played forwards and backwards, over and over), which must stay flat;
   * offline throughput of the default pipeline: the sample as one sequence through
     ``Retargeter.retarget_sequence``.
 --neighbour measures only this, without torch: the shipped sample's 68 clouds (P = 2,048,
@@ -576,8 +576,8 @@ def main():
               f"{stream['ms_per_frame']:.2f} ms/frame after the first "
               f"{stream['calibration_frames']} frames (passes {stream['ms_per_frame_min']:.2f}"
               f"-{stream['ms_per_frame_max']:.2f}), {stream['fps']:.1f} frames/s: {verdict}; "
-              f"the first "
-              f"{stream['calibration_frames']} frames {stream['calibration_frames_s']:.2f} s; "
+              f"the first {stream['calibration_frames']} frames "
+              f"{stream['calibration_frames_s']:.2f} s; "
               f"resident memory {rss[0]:.1f} -> {rss[-1]:.1f} MB over "
               f"{stream['memory_frames']} frames; offline {stream['offline_fps']:.1f} frames/s",
               flush=True)
