@@ -19,8 +19,8 @@ from reference_models import random_reference, random_stream  # noqa: E402
 
 from minretarget.cli import int_at_least  # noqa: E402
 from minretarget.retargeter import Retargeter  # noqa: E402
-from minretarget.pipeline import PipelineConfig
 from training.export import runtime_weights  # noqa: E402
+from training.models.pipeline import RUNTIME_CONFIG  # noqa: E402
 from training.recipe import load_recipe  # noqa: E402
 
 
@@ -36,9 +36,7 @@ def main():
     weights = runtime_weights(model.skr, model.smrm, model.skin, refine=model.refine,
                               denoise=model.denoise)
     # SMRM's output as it comes, as the torch reference gives it, its denoiser included.
-    retargeter = Retargeter(weights, PipelineConfig(
-        smoothing=None, foot_lock=None, mirror_target=False, facing_check=False,
-        allow_untrained=True), warn=False)
+    retargeter = Retargeter(weights, RUNTIME_CONFIG, warn=False)
     target, sources = random_stream(seed=0, frames=args.frames, target_points=args.target,
                                     min_points=args.points, max_points=args.points + 1)
     retargeter.set_target(target)

@@ -3,20 +3,30 @@
     python benchmarks/speed.py [--quick] [--weights FILE] [--threads N] [--json OUT.json]
     python benchmarks/speed.py --neighbour [--weights FILE] [--json OUT.json]
 
-One process, the same weights and inputs for every engine, batch 1 streaming (one frame at a
-time, as online use), with N threads everywhere (BLAS under numba, torch, onnxruntime):
-  * milliseconds per frame of each stage (SKR, joint refiner, denoiser, SMRM step, FK, LBS) and
-    end to end, at P source points in {1024, 2048, 6890} and V target points in {6890, 13718}
-    (--quick: the default setting P = 2048, V = 13718 only), and their floating-point
-    operations per frame;
-  * the torch reference (training/models/pipeline.py) in eager mode and, at the default
-    setting, under torch.compile; onnxruntime on the same step exported to ONNX;
+One process, batch 1 streaming (one frame at a time, as online use), with N threads everywhere
+(BLAS under numba, torch, onnxruntime):
+  * the headline: the shipped default pipeline (``minretarget.pipeline.DEFAULT_PRESET``, with
+    the source fit) on a real body stream, the shipped sample's 68 clouds (P = 2,048,
+    V = 13,718, the default setting) through ``Retargeter.step``, several passes: median ms
+    per frame after the fit's calibration frames, those frames' total, and the 60 frames/s
+    (16.67 ms) check. Random clouds would not do here: the fit finds no body in them and takes
+    its cheaper lost-body path every frame;
+  * the engines like for like: minretarget running what the torch reference
+    (training/models/pipeline.py) runs, ``RUNTIME_CONFIG`` there (SKR, refiner, denoiser,
+    SMRM, FK, LBS; no fit, smoothing or foot lock), against that reference in eager mode and,
+    at the default setting, under torch.compile, and onnxruntime on the same step exported to
+    ONNX; the same weights, target and clouds for every engine (at the default setting the
+    sample's, elsewhere random body-sized clouds); ms per frame of each of its stages and end
+    to end, at P source points in {1024, 2048, 6890} and V target points in {6890, 13718}
+    (--quick: the default setting only), and their floating-point operations per frame;
   * this machine's float32 matrix-multiply peak (the best of a few products), and SKR's
     fraction of it;
   * numba's compile time with an empty cache and import + first frame from the on-disk cache,
     each in a fresh process, apart from the steady state;
-  * resident memory along a 10,000-frame stream (--quick: 2,000), which must stay flat;
-  * offline throughput: whole sequences through ``Retargeter.retarget_sequence``.
+  * resident memory along a 10,000-frame stream of the default pipeline (--quick: 2,000; the
+    sample played forwards and backwards, over and over), which must stay flat;
+  * offline throughput of the default pipeline: the sample as one sequence through
+    ``Retargeter.retarget_sequence``.
 --neighbour measures only this, without torch: the shipped sample's 68 clouds (P = 2,048,
 V = 13,718) streamed through ``Retargeter.step`` with 1 and 2 BLAS threads, alone and beside
 a busy neighbour (another process spinning on one core, as on a shared machine), with the
@@ -44,6 +54,7 @@ from minretarget.cli import int_at_least
 from minretarget.denoise import denoise_joints, hidden_shape
 from minretarget.fit import FitSettings
 from minretarget.kinematics import forward_kinematics, skinning_transforms
+from minretarget.pipeline import DEFAULT_PRESET
 from minretarget.refine import MAX_POINTS, refine_joints
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
@@ -54,8 +65,13 @@ from minretarget.sources import load_sample
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import command_line, load_measured, write_text  # noqa: E402
 
-DEFAULT_SETTING = (2048, 13718)
+DEFAULT_SETTING = (2048, 13718)        # the shipped sample's clouds and target
 SETTINGS = [(p, v) for p in (1024, 2048, 6890) for v in (6890, 13718)]
+TARGET_FPS = 60                         # issue 39: end to end, one thread, the default setting
+# What the stages are called in a pipeline's label (``pipeline_label``), by stage name.
+STAGE_LABELS = {"thinning": "thinning", "skr": "SKR", "facing_check": "facing check",
+                "source_fit": "source fit", "smoothing": "smoothing", "denoiser": "denoiser",
+                "smrm": "SMRM", "fk": "FK", "foot_lock": "foot lock", "lbs": "LBS"}
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -63,6 +79,30 @@ SETTINGS = [(p, v) for p in (1024, 2048, 6890) for v in (6890, 13718)]
 def body_cloud(rng, count):
     """A body-sized Gaussian cloud (count, 3), metres (speed does not depend on its shape)."""
     return (rng.standard_normal((count, 3)) * [0.25, 0.45, 0.12] + [0, 0.9, 0]).astype(np.float32)
+
+
+def setting_inputs(points, vertices):
+    """(target points (V, 3), its faces or None, 8 or more source clouds (P, 3)) for a setting:
+    the shipped sample's at the default setting, random body-sized clouds elsewhere."""
+    if (points, vertices) == DEFAULT_SETTING:
+        source, target_points, faces, _ = load_sample()
+        return target_points, faces, list(source.frames)
+    rng = np.random.default_rng(0)
+    return body_cloud(rng, vertices), None, [body_cloud(rng, points) for _ in range(8)]
+
+
+def cycling(frames):
+    """A function giving ``frames`` in turn, over and over, one a call."""
+    counter = iter(range(10 ** 9))
+    return lambda: frames[next(counter) % len(frames)]
+
+
+def pipeline_label(retargeter):
+    """The stages a retargeter's frames go down, as "SKR->refiner->...->LBS"."""
+    labels = [STAGE_LABELS[stage.name] for stage in retargeter.stages]
+    if retargeter.config.refine and retargeter.weights.refine is not None:
+        labels.insert(labels.index("SKR") + 1, "refiner")
+    return "->".join(labels)
 
 
 def time_per_call(function, repeats, warmup=3):
@@ -144,22 +184,21 @@ def matmul_peak(threads, repeats=5):
 
 # ----------------------------------------------------------------------------- minretarget
 
-def minretarget_stages(weights, source_points, target_points, repeats, workers):
-    """ms per frame of each runtime stage and end to end; and the retargeter and inputs."""
-    rng = np.random.default_rng(0)
-    retargeter = Retargeter(weights, warn=False, workers=workers)
-    retargeter.set_target(body_cloud(rng, target_points))
+def minretarget_stages(weights, config, target_points, faces, frames, repeats, workers):
+    """ms per frame of each runtime stage, and end to end through ``Retargeter.step`` with
+    ``config``, streaming ``frames`` in turn; and that retargeter."""
+    retargeter = Retargeter(weights, config, warn=False, workers=workers)
+    retargeter.set_target(target_points, faces)
     target = retargeter.target
-    frames = [body_cloud(rng, source_points) for _ in range(8)]
     source_joints = regress_joints(frames[0], weights.skr)
     rotations, root, state = retarget_step(weights.smrm, None, source_joints, target.tpose_joints)
     joints, global_rotations = forward_kinematics(rotations, root, target.tpose_joints)
     transforms = skinning_transforms(joints, global_rotations, target.tpose_joints)
     denoise_hidden = np.zeros(hidden_shape(weights.denoise), np.float32)
-    cycle = iter(range(10 ** 9))
+    cloud = cycling(frames)
     stages = {
-        "skr": lambda: regress_joints(frames[next(cycle) % 8], weights.skr, workers),
-        "refine": lambda: (refine_joints(frames[next(cycle) % 8], source_joints, weights.refine,
+        "skr": lambda: regress_joints(cloud(), weights.skr, workers),
+        "refine": lambda: (refine_joints(cloud(), source_joints, weights.refine,
                                          weights.config.refine_neighbours)
                            if weights.refine is not None else None),
         "denoise": lambda: (denoise_joints(weights.denoise, denoise_hidden, source_joints,
@@ -169,10 +208,10 @@ def minretarget_stages(weights, source_points, target_points, repeats, workers):
                                            target.tpose_joints),
         "fk": lambda: forward_kinematics(rotations, root, target.tpose_joints),
         "lbs": lambda: linear_blend_skinning(target.points, target.skin_weights, transforms),
-        "end_to_end": lambda: retargeter.step(frames[next(cycle) % 8]),
+        "end_to_end": lambda: retargeter.step(cloud()),
     }
     ms = {name: 1e3 * time_per_call(f, repeats) for name, f in stages.items()}
-    return ms, retargeter, frames
+    return ms, retargeter
 
 
 # ----------------------------------------------------------------------------- torch, ONNX
@@ -193,25 +232,34 @@ def torch_reference(weights, target):
     return reference
 
 
+def max_difference_vs_torch(retargeter, reference, frames):
+    """The largest |minretarget - torch| (metres) over the posed target points of ``frames``
+    streamed through both from a stream's start: the check that the two engines compute the
+    same thing before they are timed against each other."""
+    import torch
+    retargeter.reset()
+    reference.state = None
+    return max(float(np.abs(retargeter.step(cloud).vertices
+                            - reference.step(torch.from_numpy(cloud))["vertices"].numpy()).max())
+               for cloud in frames)
+
+
 def torch_times(reference, frames, repeats, compile_too):
     """ms per frame: torch eager SKR and end to end; torch.compile end to end (or why not)."""
     import torch
-    tensors = [torch.from_numpy(f) for f in frames]
-    cycle = iter(range(10 ** 9))
+    tensor = cycling([torch.from_numpy(f) for f in frames])
     with torch.no_grad():
-        _, state = reference(tensors[0], None)
-        out = {"skr": 1e3 * time_per_call(lambda: reference.skr(tensors[next(cycle) % 8][None]),
-                                          repeats),
-               "end_to_end": 1e3 * time_per_call(
-                   lambda: reference(tensors[next(cycle) % 8], state), repeats)}
+        _, state = reference(tensor(), None)
+        out = {"skr": 1e3 * time_per_call(lambda: reference.skr(tensor()[None]), repeats),
+               "end_to_end": 1e3 * time_per_call(lambda: reference(tensor(), state), repeats)}
         if compile_too:
             try:
                 compiled = torch.compile(reference)
                 start = time.perf_counter()
-                compiled(tensors[0], state)
+                compiled(tensor(), state)
                 out["compile_s"] = time.perf_counter() - start
                 out["compiled_end_to_end"] = 1e3 * time_per_call(
-                    lambda: compiled(tensors[next(cycle) % 8], state), repeats)
+                    lambda: compiled(tensor(), state), repeats)
             except Exception as error:   # a missing compiler, an unsupported op: report it
                 out["compile_error"] = f"{type(error).__name__}: {str(error)[:300]}"
     return out
@@ -272,8 +320,8 @@ def onnx_times(reference, frames, threads, repeats):
         expected = reference(torch.from_numpy(frames[1]),
                              (smrm_state, denoise_state))[0]["vertices"].numpy()
     error = float(np.abs(vertices - expected).max())
-    cycle = iter(range(10 ** 9))
-    ms = 1e3 * time_per_call(lambda: session.run(None, feeds[next(cycle) % 8]), repeats)
+    feed = cycling(feeds)
+    ms = 1e3 * time_per_call(lambda: session.run(None, feed()), repeats)
     return {"end_to_end": ms, "export_s": export_s, "max_abs_diff_vs_torch_m": error}
 
 
@@ -387,24 +435,23 @@ def stream_memory(retargeter, frames, count, every=500):
     return samples
 
 
-def offline_fps(retargeter, frames, length=256):
-    """Frames per second of ``retarget_sequence`` on a ``length``-frame sequence."""
-    sequence = np.stack([frames[i % len(frames)] for i in range(length)])
-    retargeter.retarget_sequence(sequence[:8])                       # warm up
-    start = time.perf_counter()
-    retargeter.retarget_sequence(sequence)
-    return length / (time.perf_counter() - start)
+def offline_fps(retargeter, frames, repeats=3):
+    """Frames per second of ``retarget_sequence`` on ``frames`` as one sequence (the median of
+    ``repeats`` runs, after one warm-up run)."""
+    sequence = np.stack(frames)
+    return len(frames) / time_per_call(lambda: retargeter.retarget_sequence(sequence), repeats,
+                                       warmup=1)
 
 
-# ----------------------------------------------------------------------------- neighbour
+# ----------------------------------------------------------------------------- the sample
 
-def sample_stream_times(weights, preset, blas_threads):
+def sample_stream_times(weights, preset, blas_threads, workers=1):
     """(median ms per frame after the calibration frames, seconds of those frames) of the
     shipped sample streamed through ``Retargeter.step``, after one warm-up pass."""
     source, target_points, faces, _ = load_sample()
     clouds = list(source.frames)
     kept = FitSettings().calibration_frames
-    retargeter = Retargeter(weights, preset, warn=False)
+    retargeter = Retargeter(weights, preset, warn=False, workers=workers)
     retargeter.set_target(target_points, faces)
     with threadpool_limits(blas_threads, user_api="blas"):
         for points in clouds[:kept + 2]:                                  # warm-up
@@ -416,6 +463,37 @@ def sample_stream_times(weights, preset, blas_threads):
             retargeter.step(points)
             seconds.append(time.perf_counter() - start)
     return 1e3 * float(np.median(seconds[kept:])), float(np.sum(seconds[:kept]))
+
+
+def default_pipeline_figures(weights, blas_threads, workers, passes, memory_frames):
+    """The headline: the shipped default pipeline on the sample at the default setting.
+    ``passes`` times ``sample_stream_times`` (a fresh retargeter each): the median over the
+    passes of their ms per frame after the fit's calibration frames, its spread (min, max,
+    every pass), the calibration frames' seconds and the 60 frames/s check; then, on one more
+    retargeter, resident memory along ``memory_frames`` frames (``stream_memory``) and offline
+    frames/s (``offline_fps``)."""
+    runs = [sample_stream_times(weights, "default", blas_threads, workers)
+            for _ in range(passes)]
+    ms, calibration_s = [run[0] for run in runs], [run[1] for run in runs]
+    median = float(np.median(ms))
+    target_points, faces, clouds = setting_inputs(*DEFAULT_SETTING)
+    retargeter = Retargeter(weights, warn=False, workers=workers)
+    retargeter.set_target(target_points, faces)
+    # Played forwards then backwards, over and over: the body never jumps, so the fit keeps
+    # tracking it (a jump from the last cloud to the first loses it for a few frames).
+    rss = stream_memory(retargeter, clouds + clouds[-2:0:-1], memory_frames)
+    return {"preset": DEFAULT_PRESET, "pipeline": pipeline_label(retargeter),
+            "P": DEFAULT_SETTING[0], "V": DEFAULT_SETTING[1], "stream_frames": len(clouds),
+            "calibration_frames": FitSettings().calibration_frames, "passes": passes,
+            "ms_per_frame": median, "ms_per_frame_min": min(ms), "ms_per_frame_max": max(ms),
+            "ms_per_frame_passes": ms, "fps": 1e3 / median,
+            "calibration_frames_s": float(np.median(calibration_s)),
+            "calibration_frames_s_passes": calibration_s,
+            "target_fps": TARGET_FPS, "target_ms": 1e3 / TARGET_FPS,
+            "meets_target_fps": median <= 1e3 / TARGET_FPS,
+            "memory_rss_mb": rss, "memory_frames": memory_frames,
+            "memory_growth_mb": rss[-1] - rss[1] if len(rss) > 1 else 0.0,
+            "offline_fps": offline_fps(retargeter, clouds)}
 
 
 def neighbour_times(weights):
@@ -470,6 +548,8 @@ def main():
     workers = args.workers
     blas_threads = 1 if workers > 1 else args.threads
     import torch
+
+    from training.models.pipeline import RUNTIME_CONFIG
     torch.set_num_threads(args.threads)
     weights, record = load_measured(args.weights)
     repeats = 15 if args.quick else 30
@@ -485,17 +565,40 @@ def main():
               f"{results['matmul_peak_gflops']:.1f} GFLOP/s")
         results["compile"] = compile_times(args.weights)
         print(f"numba: {json.dumps(results['compile'])}")
+        stream = results["default_pipeline_stream"] = default_pipeline_figures(
+            weights, blas_threads, workers, passes=5 if args.quick else 10,
+            memory_frames=2000 if args.quick else 10000)
+        rss = stream["memory_rss_mb"]
+        verdict = (f"{TARGET_FPS} frames/s ({stream['target_ms']:.2f} ms) "
+                   f"{'met' if stream['meets_target_fps'] else 'NOT met'}")
+        print(f"the default pipeline ({stream['preset']}: {stream['pipeline']}) on the shipped "
+              f"sample, P={stream['P']}, V={stream['V']}, {stream['passes']} passes: "
+              f"{stream['ms_per_frame']:.2f} ms/frame after the first "
+              f"{stream['calibration_frames']} frames (passes {stream['ms_per_frame_min']:.2f}"
+              f"-{stream['ms_per_frame_max']:.2f}), {stream['fps']:.1f} frames/s: {verdict}; "
+              f"the first {stream['calibration_frames']} frames "
+              f"{stream['calibration_frames_s']:.2f} s; "
+              f"resident memory {rss[0]:.1f} -> {rss[-1]:.1f} MB over "
+              f"{stream['memory_frames']} frames; offline {stream['offline_fps']:.1f} frames/s",
+              flush=True)
         header = ("P", "V", "skr", "refine", "denoise", "smrm_step", "fk", "lbs", "end_to_end",
-                  "fps",
-                  "torch", "compiled", "onnxrt")
+                  "fps", "torch", "compiled", "onnxrt")
+        print("engines, the same computation (training/models/pipeline.py's RUNTIME_CONFIG), "
+              "ms per frame:")
         print(" ".join(f"{h:>10}" for h in header))
         for p, v in [DEFAULT_SETTING] if args.quick else SETTINGS:
-            ms, retargeter, frames = minretarget_stages(weights, p, v, repeats, workers)
+            target_points, faces, frames = setting_inputs(p, v)
+            ms, retargeter = minretarget_stages(weights, RUNTIME_CONFIG, target_points, faces,
+                                                frames, repeats, workers)
             reference = torch_reference(weights, retargeter.target)
-            default = (p, v) == DEFAULT_SETTING
-            row = {"P": p, "V": v, "ms": ms, "fps_end_to_end": 1e3 / ms["end_to_end"],
+            row = {"P": p, "V": v, "pipeline": pipeline_label(retargeter),
+                   "sample_clouds": (p, v) == DEFAULT_SETTING, "ms": ms,
+                   "max_abs_diff_vs_torch_m": max_difference_vs_torch(retargeter, reference,
+                                                                      frames[:8]),
+                   "fps_end_to_end": 1e3 / ms["end_to_end"],
                    "flops": stage_flops(weights.config, p, v),
-                   "torch": torch_times(reference, frames, repeats, compile_too=default),
+                   "torch": torch_times(reference, frames, repeats,
+                                        compile_too=(p, v) == DEFAULT_SETTING),
                    "onnxruntime": onnx_times(reference, frames, args.threads, repeats)}
             results["settings"].append(row)
             print(" ".join(f"{x:>10}" for x in (p, v)) + " " + " ".join(
@@ -505,36 +608,35 @@ def main():
                 + (f"{row['torch']['compiled_end_to_end']:>8.3f}ms"
                    if "compiled_end_to_end" in row["torch"] else f"{'-':>10}")
                 + f" {row['onnxruntime']['end_to_end']:>8.3f}ms", flush=True)
-            if default:
-                count = 2000 if args.quick else 10000
-                results["memory_rss_mb"] = stream_memory(retargeter, frames, count)
-                results["memory_frames"] = count
-                results["offline_fps"] = offline_fps(retargeter, frames)
     row = next(r for r in results["settings"] if (r["P"], r["V"]) == DEFAULT_SETTING)
-    rss = results["memory_rss_mb"]
+    ours = row["ms"]["end_to_end"]
+    compiled = row["torch"].get("compiled_end_to_end")
+    engines = results["engine_comparison"] = {
+        "pipeline": row["pipeline"], "config": "training.models.pipeline.RUNTIME_CONFIG",
+        "P": DEFAULT_SETTING[0], "V": DEFAULT_SETTING[1], "clouds": "the shipped sample's",
+        "max_abs_diff_vs_torch_m": row["max_abs_diff_vs_torch_m"],
+        "minretarget_ms": ours, "torch_eager_ms": row["torch"]["end_to_end"],
+        "torch_compile_ms": compiled, "onnxruntime_ms": row["onnxruntime"]["end_to_end"],
+        "ratio_vs_torch": row["torch"]["end_to_end"] / ours,
+        "ratio_vs_torch_compile": compiled / ours if compiled is not None else None,
+        "ratio_vs_onnxruntime": row["onnxruntime"]["end_to_end"] / ours}
     results.update({
-        "fps_end_to_end": row["fps_end_to_end"],
-        "ms_per_frame": row["ms"]["end_to_end"],
-        "ratio_vs_torch": row["torch"]["end_to_end"] / row["ms"]["end_to_end"],
-        "ratio_vs_torch_compile": (row["torch"]["compiled_end_to_end"] / row["ms"]["end_to_end"]
-                                   if "compiled_end_to_end" in row["torch"] else None),
-        "ratio_vs_onnxruntime": row["onnxruntime"]["end_to_end"] / row["ms"]["end_to_end"],
         "skr_gflops": row["flops"]["skr"] / row["ms"]["skr"] / 1e6,
         "skr_fraction_of_peak": row["flops"]["skr"] / row["ms"]["skr"] / 1e6
         / results["matmul_peak_gflops"],
         "warm_start_s": results["compile"]["warm"]["import_to_first_frame_s"],
-        "memory_growth_mb": rss[-1] - rss[1] if len(rss) > 1 else 0.0,
     })
-    compiled = (f"{results['ratio_vs_torch_compile']:.2f}x torch.compile"
-                if results["ratio_vs_torch_compile"] is not None
+    compiled = (f"{engines['ratio_vs_torch_compile']:.2f}x torch.compile"
+                if compiled is not None
                 else f"torch.compile failed ({row['torch']['compile_error']})")
-    print(f"default setting P={DEFAULT_SETTING[0]}, V={DEFAULT_SETTING[1]}: "
-          f"{results['fps_end_to_end']:.1f} frames/s, {results['ratio_vs_torch']:.2f}x torch "
-          f"eager, {compiled}, {results['ratio_vs_onnxruntime']:.2f}x onnxruntime, SKR at "
+    print(f"engines at P={DEFAULT_SETTING[0]}, V={DEFAULT_SETTING[1]} ({engines['pipeline']}, "
+          f"the sample's clouds; outputs within {engines['max_abs_diff_vs_torch_m']:.1e} m of "
+          f"torch's): minretarget {ours:.2f} ms, {engines['ratio_vs_torch']:.2f}x "
+          f"torch eager, {compiled}, {engines['ratio_vs_onnxruntime']:.2f}x onnxruntime; SKR at "
           f"{results['skr_gflops']:.1f} GFLOP/s = {100 * results['skr_fraction_of_peak']:.0f}% "
-          f"of peak; warm start {results['warm_start_s']:.2f} s; resident memory "
-          f"{rss[0]:.1f} -> {rss[-1]:.1f} MB over {results['memory_frames']} frames; offline "
-          f"{results['offline_fps']:.1f} frames/s")
+          f"of peak; warm start {results['warm_start_s']:.2f} s")
+    print(f"the default pipeline ({stream['preset']}) on the sample: "
+          f"{stream['ms_per_frame']:.2f} ms/frame, {stream['fps']:.1f} frames/s, {verdict}")
     if args.json:
         write_text(args.json, json.dumps(results, indent=2))
 

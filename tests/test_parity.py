@@ -17,15 +17,12 @@ from minretarget.retargeter import Retargeter  # noqa: E402
 from minretarget.skin import linear_blend_skinning, skinning_weights  # noqa: E402
 from minretarget.skr import regress_joints  # noqa: E402
 from minretarget.weights import load_weights  # noqa: E402
-from minretarget.pipeline import UNCOUPLED, PipelineConfig
+from minretarget.pipeline import UNCOUPLED  # noqa: E402
 from training import kinematics as torch_kinematics  # noqa: E402
 from training.export import export_weights, runtime_weights  # noqa: E402
+from training.models.pipeline import RUNTIME_CONFIG as RAW  # noqa: E402
 
 TOLERANCE = 1e-4   # metres, on joints and vertices
-
-
-# SMRM's output as it comes, as the torch reference gives it (the denoiser and refiner on).
-RAW = PipelineConfig(smoothing=None, foot_lock=None, mirror_target=False, facing_check=False)
 
 
 @pytest.fixture(scope="module")

@@ -1,20 +1,28 @@
 """The whole retargeting pipeline in torch: the reference the runtime's Retargeter must match.
 
 Mirrors minretarget.Retargeter step for step (inference only, eval mode, no gradients), as
-``Retargeter(weights, PipelineConfig(smoothing=None, foot_lock=None, mirror_target=False,
-facing_check=False))`` runs it: SKR (and the
-refiner), the denoiser (if the config has them), SMRM, FK, LBS.
+``Retargeter(weights, RUNTIME_CONFIG)`` runs it: SKR (and the refiner), the denoiser (if the
+config has them), SMRM, FK, LBS. The parity tests (tests/test_parity.py, benchmarks/parity.py)
+and the engine comparison of benchmarks/speed.py pair the two through ``RUNTIME_CONFIG``.
 """
 import torch
 from torch import nn
 
 from minretarget.config import ModelConfig
+from minretarget.pipeline import PipelineConfig
 from training.kinematics import linear_blend_skinning, skinning_transforms, forward_kinematics
 from .denoise import SkeletonDenoiser
 from .refine import JointRefiner
 from .skin import SkinningField
 from .skr import SkeletonRegressor
 from .smrm import MotionRetargeter
+
+# The runtime's pipeline that computes what ReferenceRetargeter does: SMRM's output as it comes
+# (no smoothing, foot lock, mirrored target or facing check). ``allow_untrained``: trained
+# weights' denoiser learned smoothed skeletons (``minretarget.pipeline.check_pipeline``), and
+# the reference feeds it unsmoothed ones.
+RUNTIME_CONFIG = PipelineConfig(smoothing=None, foot_lock=None, mirror_target=False,
+                                facing_check=False, allow_untrained=True)
 
 
 class ReferenceRetargeter(nn.Module):
