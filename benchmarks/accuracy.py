@@ -616,7 +616,7 @@ def main(argv=None):
                              "held-out validation bodies instead (training.data.datasets."
                              "dance_sequences: 6,954 frames): motion validation lacks")
     which.add_argument("--motions", action="store_true",
-                        help="score four trials of each other motion category of the training "
+                        help="score up to four trials of each other motion category of the training "
                              "split (walks, runs, jumps, climbs, sports, sitting...) on "
                              "held-out validation bodies instead (training.data.datasets."
                              "motion_sequences: 28 trials, 4,883 frames)")
