@@ -616,8 +616,8 @@ def main(argv=None):
                              "held-out validation bodies instead (training.data.datasets."
                              "dance_sequences: 6,954 frames): motion validation lacks")
     which.add_argument("--motions", action="store_true",
-                        help="score up to four trials of each other motion category of the training "
-                             "split (walks, runs, jumps, climbs, sports, sitting...) on "
+                        help="score up to four trials of each other motion category of the "
+                             "training split (walks, runs, jumps, climbs, sports, sitting...) on "
                              "held-out validation bodies instead (training.data.datasets."
                              "motion_sequences: 28 trials, 4,883 frames)")
     parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS,

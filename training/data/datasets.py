@@ -528,10 +528,10 @@ def dance_sequences(cmu_dir, max_frames=600, points=2048):
 
 
 # Every other motion category of the training split (walks, runs, jumps, climbs, everyday,
-# sports, fights, sitting...), up to four trials of each drawn with a fixed seed, at most 240 frames
-# each: a selection set for what the dances and validation's two subjects rarely show (legs
-# crossing, say), on held-out bodies; SKR and the rest trained on these motions, on other
-# bodies, as with the dances.
+# sports, fights, sitting...), up to four trials of each drawn with a fixed seed, at most 240
+# frames each: a selection set for what the dances and validation's two subjects rarely show
+# (legs crossing, say), on held-out bodies; SKR and the rest trained on these motions, on
+# other bodies, as with the dances.
 MOTION_CATEGORIES_LEFT_OUT = frozenset({"dance", "salsa", "martial"})     # the dances' own
 
 
