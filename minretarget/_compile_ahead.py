@@ -8,9 +8,10 @@ install's first frame compiles about 130 kernel signatures; on a machine with tw
 cores the second process takes a share of them off the critical path. Before the later
 stages it compiles what the first process meets last on its way to them (SKIN at the end of
 ``set_target``; with the source fit, its pose from a reading, its shape's rows and the end
-of its Gauss-Newton step). It says which later stage it is compiling, and the stream waits for that one rather
-than compile it too. It starts only when numba first compiles one of minretarget's kernels in a
-process (a warm cache never starts it), and at most once per pipeline config per process;
+of its Gauss-Newton step). It says which later stage it is compiling, and the stream waits
+for that one rather than compile it too. It starts only when numba first compiles one of
+minretarget's kernels in a process (a warm cache never starts it), and at most once per
+pipeline config per process;
 it shares numba's cache location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``)
 through its environment. Set ``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the
 calling process.

@@ -10,8 +10,8 @@ on disk next to the package, so only the first import on a machine pays the comp
 fastmath allows reassociation and contraction (FMA) but keeps NaN and inf semantics, so a
 bad value propagates instead of being optimised into garbage; for the same reason a division
 by zero gives inf or nan, as in NumPy (``error_model="numpy"``), rather than numba's
-Python-style check before every division (about 7 % of the compile time, issue 40). Set ``NUMBA_DISABLE_JIT=1``
-to run every kernel as plain Python (the tests do this too).
+Python-style check before every division (about 7 % of the compile time, issue 40). Set
+``NUMBA_DISABLE_JIT=1`` to run every kernel as plain Python (the tests do this too).
 """
 import contextlib
 

@@ -833,7 +833,8 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
     chains = model_chains(model)
     cost = _gauss_newton(
         settings.iterations, rest, tpose_joints, model.bone_index, model.bone_weight,
-        model.normals, _PARENTS, *chains.arguments(), cloud, cloud_grid.origin, cloud_grid.cell, cloud_grid.dims,
+        model.normals, _PARENTS, *chains.arguments(), cloud, cloud_grid.origin,
+        cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
         float(settings.model_to_cloud), int(settings.model_stride), float(pull_weight),
         np.zeros((NUM_JOINTS, 3)) if pull_goal is None else np.asarray(pull_goal, np.float64),

@@ -175,8 +175,8 @@ class Retargeter:
         this retargeter's settings, or load them from numba's on-disk cache, by retargeting
         two frames of the target's own points (about 1,000 of them; or its T-pose joints);
         then restart the stream. Takes milliseconds with a warm cache, 15-25 s with a cold one
-        (docs/python_api.md): call it before timing or showing progress. Those frames are not the source's:
-        the source fit does not warn of them."""
+        (docs/python_api.md): call it before timing or showing progress. Those frames are not
+        the source's: the source fit does not warn of them."""
         self._require_target("warm_up")
         points = None if skeleton else np.ascontiguousarray(                  # (~1024, 3)
             self.target.points[::max(1, len(self.target.points) // 1024)])
