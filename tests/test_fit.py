@@ -173,6 +173,25 @@ def test_gauss_newton_step_is_the_solution_of_the_normal_equations():
         fit._solve_positive_definite(indefinite, gradient, step)
 
 
+def test_damped_step_is_the_capped_solution_of_the_damped_equations():
+    """``_damped_step_kernel`` against NumPy: Levenberg-Marquardt's damping and floor on the
+    diagonal, the solve, then the root's shift and each joint's turn capped (some steps here
+    are large enough to be capped, some not)."""
+    rng = np.random.default_rng(19)
+    rows = rng.normal(size=(300, fit.PARAMETERS))
+    hessian = rows.T @ rows
+    gradient = rng.normal(size=fit.PARAMETERS) * 10.0 ** rng.uniform(-3, 2, fit.PARAMETERS)
+    step = np.empty(fit.PARAMETERS)
+    fit._damped_step_kernel(hessian.copy(), gradient, step)
+    damped = hessian + np.diag(1e-3 * np.diag(hessian) + 1e-5)
+    want = -np.linalg.solve(damped, gradient).reshape(-1, 3)
+    limits = np.r_[fit.MAX_SHIFT, np.full(NUM_JOINTS, fit.MAX_TURN)]
+    norms = np.linalg.norm(want, axis=1)
+    assert (norms > limits).any() and (norms < limits).any()
+    want *= np.minimum(1, limits / norms)[:, None]
+    np.testing.assert_allclose(step, want.ravel(), rtol=1e-8, atol=1e-12)
+
+
 def test_pull_normal_equations_are_the_joints_derivative_products(model):
     state = posed_state(model, seed=3)
     tpose, joints = state[2], state[6]
