@@ -4,17 +4,16 @@ LBS) last to first into numba's on-disk cache, where the first one finds them wh
 there; they meet in the middle, and the first frame stops it.
 
 numba compiles on one core at a time (its compiler holds a global lock), and a fresh
-install's first frame compiles about 130 kernel signatures; on a machine with two or more
+install's first frame compiles about 100 kernel signatures; on a machine with two or more
 cores the second process takes a share of them off the critical path. Before the later
 stages it compiles what the first process meets last on its way to them (SKIN at the end of
 ``set_target``; with the source fit, its pose from a reading, its shape's rows and the end
 of its Gauss-Newton step). It says which later stage it is compiling, and the stream waits
 for that one rather than compile it too. It starts only when numba first compiles one of
 minretarget's kernels in a process (a warm cache never starts it), and at most once per
-pipeline config per process;
-it shares numba's cache location (the package's ``__pycache__`` or ``NUMBA_CACHE_DIR``)
-through its environment. Set ``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the
-calling process.
+pipeline config per process; it shares numba's cache location (the package's
+``__pycache__`` or ``NUMBA_CACHE_DIR``) through its environment. Set
+``MINRETARGET_COMPILE_AHEAD=0`` to compile everything in the calling process.
 
 Its stages see the shipped weights and, as a target, the shipped body model's mean body
 (its skeleton given, SKIN run on it), and a T-pose frame: numba compiles per argument type,
