@@ -159,8 +159,7 @@ def main(argv=None):
     points, tpose_joints = model.points.astype(np.float32), model.joints.astype(np.float32)
     # First what the calling process comes to last before the later stages: SKIN, at the
     # end of its set_target, and (with the fit) the fit's pose of its model like the
-    # reading (``local_from_joints``) and its cloud's grid and nearest points on its first
-    # frame.
+    # reading (``local_from_joints``) and the end of its first frame (``_fit_tail``).
     retargeter.set_target(points, tpose_joints=tpose_joints)
     if config.fit_source is not None:
         local_from_joints(tpose_joints, tpose_joints)

@@ -108,9 +108,16 @@ def _checked_queries(queries):
 
 
 @kernel
+def _cell_index(x, origin, cell, count):
+    """Along one axis, the index of the cell holding coordinate x, clamped to the grid's
+    ``count`` cells."""
+    return min(max(int(np.floor((x - origin) / cell)), 0), count - 1)
+
+
+@kernel
 def _cell_of(point, origin, cell, dims, out):
     for a in range(3):
-        out[a] = min(max(int(np.floor((point[a] - origin[a]) / cell)), 0), dims[a] - 1)
+        out[a] = _cell_index(point[a], origin[a], cell, dims[a])
 
 
 @kernel
@@ -138,9 +145,8 @@ def _nearest_kernel(points, origin, cell, dims, order, starts, queries, distance
         x, y, z = queries[m, 0], queries[m, 1], queries[m, 2]
         best, best_index = _search(
             points, origin, cell, dims, order, starts, x, y, z,
-            min(max(int(np.floor((x - origin[0]) / cell)), 0), dims[0] - 1),
-            min(max(int(np.floor((y - origin[1]) / cell)), 0), dims[1] - 1),
-            min(max(int(np.floor((z - origin[2]) / cell)), 0), dims[2] - 1),
+            _cell_index(x, origin[0], cell, dims[0]), _cell_index(y, origin[1], cell, dims[1]),
+            _cell_index(z, origin[2], cell, dims[2]),
             np.inf, -1, np.int64(-1))
         distances[m] = np.sqrt(best)
         indices[m] = best_index

@@ -113,20 +113,25 @@ def test_a_stream_waits_only_for_a_stage_being_compiled_there():
         print("end foot_lock", flush=True)
         time.sleep(60)
     """)
-    time.sleep(0.5)                 # it has said the first two lines
+    heard = time.perf_counter() + 30
+    while "foot_lock" not in second._begun:       # until it has said its first two lines
+        assert time.perf_counter() < heard, "the second process said nothing"
+        time.sleep(0.01)
     began = time.perf_counter()
     second.await_stage("smrm")      # not begun there: the stream compiles it
     second.await_stage("lbs")       # done there
     assert time.perf_counter() - began < 0.3
     second.await_stage("foot_lock")     # being compiled: wait for its end
-    waited = time.perf_counter() - began
-    assert 0.2 < waited < 30 and "foot_lock" in second._ended
+    assert "foot_lock" in second._ended and time.perf_counter() - began < 30
     second.stop()
     gone = _saying("""
         print("begin smrm", flush=True)
     """)
     gone.process.wait()
-    gone.await_stage("smrm")        # begun, never ended, gone: no wait
+    began = time.perf_counter()
+    gone.await_stage("smrm")        # begun, never ended, gone: no wait for WAIT_S
+    assert time.perf_counter() - began < _compile_ahead.WAIT_S / 2
+    assert gone._gone and "smrm" not in gone._ended
     gone.stop()
 
 
