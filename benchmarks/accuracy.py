@@ -1,6 +1,7 @@
 """Accuracy of the runtime on the test benchmark (../shared/DESIGN.md, "Accuracy protocol").
 
-    python benchmarks/accuracy.py (--validation | --dances | --report [--quick]) [--rows ROW ...]
+    python benchmarks/accuracy.py (--validation | --dances | --motions | --crossed | --report [--quick])
+                                  [--rows ROW ...]
                                   [--weights FILE] [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
                                   [--compare OTHER.json]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]
@@ -82,6 +83,9 @@ each category), about 3 minutes; needs --report too. --validation: the same rows
 trials (held-out training subjects and bodies), for choosing between weights or settings.
 --dances: on dance and martial-arts trials of the training split played by held-out bodies,
 the motion the validation subjects lack (the networks trained on it, on other bodies).
+--motions: up to four trials of each other motion category of the training split, likewise.
+--crossed: the --dances trials (240 frames at most) with a leg crossed over the other every
+second or so (``datasets.crossings_over_time``): legs that cross, which the others barely show.
 """
 import argparse
 import functools
@@ -600,6 +604,12 @@ def select_sequences(paths, quick):
     return chosen, QUICK_FRAMES
 
 
+# The selection sets (never the test split), by the split name a run records: their
+# sequences' maker in training.data.datasets.
+SELECTION_SETS = {"validation": "validation_sequences", "training dances": "dance_sequences",
+                  "training motions": "motion_sequences", "crossed legs": "crossed_sequences"}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     which = parser.add_mutually_exclusive_group()    # one set of sequences a run
@@ -620,6 +630,10 @@ def main(argv=None):
                              "training split (walks, runs, jumps, climbs, sports, sitting...) on "
                              "held-out validation bodies instead (training.data.datasets."
                              "motion_sequences: 28 trials, 4,883 frames)")
+    which.add_argument("--crossed", action="store_true",
+                        help="score the dance trials with a leg crossed over the other every "
+                             "second or so on held-out validation bodies instead "
+                             "(training.data.datasets.crossed_sequences): legs that cross")
     parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS,
                         default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "
@@ -640,18 +654,19 @@ def main(argv=None):
         given = [option for option, value in (
             ("--quick", args.quick), ("--validation", args.validation),
             ("--dances", args.dances), ("--motions", args.motions),
-            ("--weights", args.weights),
+            ("--crossed", args.crossed), ("--weights", args.weights),
             ("--rows", args.rows != list(ROWS)), ("--build", args.build),
             ("--report", args.report)) if value]
         if given:
             parser.error(f"--from-json prints a saved run: {', '.join(given)} would not apply")
-    elif args.report and (args.validation or args.dances or args.motions):
-        parser.error("--report is for the test split; --validation, --dances and --motions "
-                     "need none")
+    elif args.report and (args.validation or args.dances or args.motions or args.crossed):
+        parser.error("--report is for the test split; --validation, --dances, --motions and "
+                     "--crossed need none")
     saved = load_results(args.from_json) if args.from_json else None
     split = (saved["split"] if saved else "validation" if args.validation
              else "training dances" if args.dances
-             else "training motions" if args.motions else "test")
+             else "training motions" if args.motions
+             else "crossed legs" if args.crossed else "test")
     if split == "test" and not saved:       # refused before anything is built or read
         refuse_test_split(parser, args)
     quick = saved.get("quick", False) if saved else args.quick
@@ -686,10 +701,8 @@ def main(argv=None):
     if split != "test" and not Path(args.cmu).is_dir():
         parser.error(f"--cmu {args.cmu}: no such folder (the {split} trials are read there)")
     if split != "test":
-        from training.data.datasets import (dance_sequences, motion_sequences,
-                                            validation_sequences)
-        held_out = (validation_sequences if args.validation else dance_sequences
-                    if args.dances else motion_sequences)(args.cmu)
+        from training.data import datasets
+        held_out = getattr(datasets, SELECTION_SETS[split])(args.cmu)
         loaders = [sequence.build for sequence in held_out]
         planned = [(sequence.name, sequence.frames) for sequence in held_out]
     else:

@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .atomic import atomic_write
-from .kinematics import matrix_to_quaternion, quaternion_to_matrix
+from .kinematics import matrix_to_quaternion, quaternion_slerp, quaternion_to_matrix
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 _CHANNEL_BY_LOWER = {name.lower(): name for name in CHANNEL_NAMES}
@@ -569,22 +569,6 @@ def resample(motion, fps=30, source_fps=None):
         order = "".join(channels[c - starts[joint]][0] for c in columns)
         q0 = matrix_to_quaternion(euler_to_matrix(v0[moving][:, columns], order))
         q1 = matrix_to_quaternion(euler_to_matrix(v1[moving][:, columns], order))
-        q = _slerp(q0, q1, weight[moving])
+        q = quaternion_slerp(q0, q1, weight[moving])
         values[np.ix_(moving, columns)] = matrix_to_euler(quaternion_to_matrix(q), order)
     return replace(motion, values=values, frame_time=1.0 / fps)
-
-
-def _slerp(q0, q1, weight):
-    """(N, 4) quaternions, (N,) weights in [0, 1] -> (N, 4) float64 shortest-path slerp."""
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)               # q and -q are the same rotation
-    angle = np.arccos(np.clip(np.abs(dot), 0.0, 1.0))
-    sin = np.sin(angle)
-    small = sin < 1e-6                                     # nearly equal: lerp is exact enough
-    safe = np.where(small, 1.0, sin)
-    w0 = np.where(small, 1 - weight, np.sin((1 - weight) * angle) / safe)
-    w1 = np.where(small, weight, np.sin(weight * angle) / safe)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)

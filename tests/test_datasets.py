@@ -16,7 +16,8 @@ from minretarget.kinematics import forward_kinematics, quaternion_to_matrix  # n
 from training.data import bodies  # noqa: E402
 from training.data.cmu import Motion  # noqa: E402
 from training.data.datasets import (DATASETS, BuildConfig, Frames, augment,  # noqa: E402
-                                     build, crossed_legs, seated_legs)
+                                     build, crossed_legs, crossings_over_time,
+                                     seated_legs)
 
 ACTOR_HIP_HEIGHT = 0.9
 TINY = BuildConfig(seed=3, bodies=2, frames=12, points=64, skin_samples=6, skin_points=32,
@@ -354,6 +355,33 @@ def test_crossed_legs_swing_one_foot_past_the_other_and_keep_the_rest():
         cosine = (thigh * shank).sum(-1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(
             shank, axis=-1)
         assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 60.1
+
+
+def test_crossings_over_time_blend_a_crossed_leg_in_and_out_smoothly():
+    """A standing motion (the T-pose, 300 frames): the crossing weight rises and falls by at
+    most 1/ramp's smoothstep a frame; at weight 0 the pose is the motion's; at weight 1 one
+    leg's toe is past the other's side; the other leg and every other joint never move; the
+    leg turns smoothly (no frame's rotation jumps); quaternions stay unit with w >= 0."""
+    frames = 300
+    rotations = np.zeros((frames, NUM_JOINTS, 4), np.float32)
+    rotations[..., 0] = 1.0
+    crossed, weight = crossings_over_time(rotations, np.random.default_rng(4))
+    assert weight.min() == 0 and weight.max() == 1
+    assert np.abs(np.diff(weight)).max() < 0.25           # smoothstep over 8 frames: < 0.2
+    assert (weight > 0).sum() > 60 and (weight == 0).sum() > 60    # both, over and over
+    np.testing.assert_array_equal(crossed[weight == 0], rotations[weight == 0])
+    np.testing.assert_allclose(np.linalg.norm(crossed, axis=-1), 1.0, atol=1e-6)
+    assert (crossed[..., 0] >= 0).all()
+    legs = [JOINT_INDEX[f"{side}_{name}"] for side in ("left", "right")
+            for name in ("hip", "knee", "ankle")]
+    others = np.setdiff1d(np.arange(NUM_JOINTS), legs)
+    np.testing.assert_array_equal(crossed[:, others], rotations[:, others])
+    joints = forward_kinematics(crossed, np.zeros((frames, 3), np.float32),
+                                _straight_legged_tpose())[0]
+    toes = joints[:, [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]]
+    apart = toes[:, 0, 0] - toes[:, 1, 0]          # the T-pose's left is +X: > 0 uncrossed
+    assert (apart[weight == 0] > 0).all() and (apart[weight == 1] < 0).all()
+    assert np.linalg.norm(np.diff(toes, axis=0), axis=-1).max() < 0.15     # metres a frame
 
 
 def test_seated_fraction_bends_the_skr_frames_knees(built, cache, tmp_path):

@@ -62,7 +62,7 @@ from tqdm import tqdm
 
 from minretarget.conventions import (FORWARD_AXIS, FPS, JOINT_INDEX, LEFT_AXIS, NUM_JOINTS,
                                      UP_AXIS)
-from minretarget.kinematics import forward_kinematics, quaternion_multiply
+from minretarget.kinematics import forward_kinematics, quaternion_multiply, quaternion_slerp
 from minretarget.sampling import points_from_barycentric, sample_point_clouds, sample_surface
 
 from .bodies import (benchmark_bodies, body_from_seed, pose_body, posed_clouds,
@@ -278,7 +278,15 @@ def crossed_legs(rotations, rng):
         (N, J, 4) float32.
     """
     rotations = np.array(rotations, dtype=np.float32)
-    count = len(rotations)
+    left, *angles = _crossing(len(rotations), rng)
+    for side, chosen in (("left", left), ("right", ~left)):
+        _set_leg(rotations, chosen, side, *(angle[chosen] for angle in angles))
+    return rotations
+
+
+def _crossing(count, rng):
+    """``count`` crossings as ``crossed_legs`` draws them: whether the left leg crosses (N,)
+    bool, and its spread, hip flexion, twist, knee and ankle angles (N,) each, radians."""
     left = rng.random(count) < 0.5
     in_front = rng.random(count) < 0.5
     inward = np.where(left, -1.0, 1.0) * rng.uniform(np.radians(30), np.radians(50), count)
@@ -287,10 +295,37 @@ def crossed_legs(rotations, rng):
     twist = rng.uniform(-np.radians(15), np.radians(15), count)
     knee = rng.uniform(0.0, np.radians(60), count)
     ankle = np.clip(hip - knee, -np.radians(30), np.radians(30))
-    for side, chosen in (("left", left), ("right", ~left)):
-        _set_leg(rotations, chosen, side, inward[chosen], hip[chosen], twist[chosen],
-                 knee[chosen], ankle[chosen])
-    return rotations
+    return left, inward, hip, twist, knee, ankle
+
+
+def crossings_over_time(rotations, rng, gap=(20, 40), hold=(15, 45), ramp=8):
+    """A motion (T, J, 4) with one leg crossed over the other now and then, as a dancer
+    crosses a foot over and back: after a gap of ``gap`` frames (uniform), a crossing drawn
+    as ``crossed_legs`` draws one is blended in over ``ramp`` frames (slerp, smoothstep),
+    held ``hold`` frames and blended out over ``ramp``; the other leg and the rest of the
+    pose keep the motion. Returns the rotations (T, J, 4) float32 and each frame's weight of
+    the crossing (T,) float32 (0: the motion's own legs)."""
+    rotations = np.array(rotations, dtype=np.float32)
+    frames = len(rotations)
+    weight = np.zeros(frames, np.float32)
+    start = int(rng.integers(*gap))
+    while start < frames:
+        held = int(rng.integers(*hold))
+        rise = np.arange(1, ramp + 1) / (ramp + 1)
+        rise = rise * rise * (3 - 2 * rise)                          # smoothstep
+        window = np.concatenate([rise, np.ones(held), rise[::-1]])[:frames - start]
+        span = slice(start, start + len(window))
+        left, *angles = _crossing(1, rng)
+        side = "left" if left[0] else "right"
+        crossed = rotations[span].copy()
+        _set_leg(crossed, slice(None), side, *(np.repeat(a, len(window)) for a in angles))
+        for joint in (f"{side}_hip", f"{side}_knee", f"{side}_ankle"):
+            j = JOINT_INDEX[joint]
+            rotations[span, j] = quaternion_slerp(rotations[span, j], crossed[:, j], window)
+        weight[span] = window
+        start += len(window) + int(rng.integers(*gap))
+    rotations *= np.where(rotations[..., :1] < 0, -1, 1).astype(np.float32)      # w >= 0
+    return rotations, weight
 
 
 def _set_leg(rotations, rows, side, spread, flexion, twist, knee, ankle):
@@ -553,6 +588,24 @@ def motion_sequences(cmu_dir, per_category=4, max_frames=240, points=2048):
     return _on_validation_bodies(list(enumerate(chosen)), max_frames, points, seed=2)
 
 
+# The dance trials again (at most 240 frames each), a leg crossed over the other every second
+# or so (``crossings_over_time``, from the pose augmentation SKR trained with): a selection
+# set for legs that cross, which the test split's dances show and the other selection sets
+# barely do (the training split has no Indian dance).
+def crossed_sequences(cmu_dir, max_frames=240, points=2048):
+    """``DANCE_TRIALS`` with ``crossings_over_time`` (seeded per trial), on held-out
+    validation bodies, as ``validation_sequences`` makes them (its seeds offset), as
+    ``HeldOutSequence``s named "<trial>+crossed"."""
+    trials = {t.name: t for t in list_trials(cmu_dir)}
+
+    def crossed(motion, k):
+        rotations, _ = crossings_over_time(motion.rotations, np.random.default_rng([3, k]))
+        return dataclasses.replace(motion, rotations=rotations, name=f"{motion.name}+crossed")
+
+    return _on_validation_bodies(list(enumerate(trials[name] for name in DANCE_TRIALS)),
+                                 max_frames, points, seed=3, vary=crossed)
+
+
 class HeldOutSequence(NamedTuple):
     """One sequence of ``validation_sequences``, ``dance_sequences`` or ``motion_sequences``,
     known before it is
@@ -563,11 +616,11 @@ class HeldOutSequence(NamedTuple):
     build: object        # () -> the sequence's dict, as ``benchmark_sequence`` makes it
 
 
-def _on_validation_bodies(numbered_trials, max_frames, points, seed):
+def _on_validation_bodies(numbered_trials, max_frames, points, seed, vary=None):
     """(k, Trial) pairs -> ``HeldOutSequence``s, trial k's benchmark sequence (its first
     ``max_frames`` frames at most, then the longest run of them without broken feet,
-    ``cmu.clean_segments``) with validation bodies 2k and 2k + 1 (mod 15) as source and
-    target and its randomness seeded (seed, k)."""
+    ``cmu.clean_segments``, then ``vary(motion, k)`` if given) with validation bodies 2k and
+    2k + 1 (mod 15) as source and target and its randomness seeded (seed, k)."""
     actor_hip_height = float(cmu_tpose_joints(numbered_trials[0][1].path)[0, 1])
     bodies = [body_from_seed(s) for s in sampled_body_seeds(15, "val")]
 
@@ -588,6 +641,8 @@ def _on_validation_bodies(numbered_trials, max_frames, points, seed):
     held_out = []
     for k, trial in numbered_trials:
         motion = motion_of(trial)
+        if vary is not None:
+            motion = vary(motion, k)
         held_out.append(HeldOutSequence(trial, motion.name, len(motion.rotations),
                                         functools.partial(build, motion, k)))
     return held_out
