@@ -1,13 +1,14 @@
 """Candidate settings of the source fit on validation (docs/source_fit.md, "Settings").
 
-    python benchmarks/fit_settings.py [--fit JSON ...] [--cmu DIR] [--json OUT.json]
+    python benchmarks/fit_settings.py [--fit JSON ...] [--set SET] [--cmu DIR] [--json OUT.json]
 
 Each ``--fit`` is a JSON object of ``minretarget.fit.FitSettings`` fields (default: one
-candidate, ``{}``, the shipped settings). Every validation trial
-(``training.data.datasets.validation_sequences``) is read by the shipped SKR and refiner
-(``Retargeter.skeleton``), tracked by ``fit.track`` with each candidate, and the fitted
-skeletons retargeted by ``Retargeter.step_skeleton`` with the shipped weights, smoothing and
-denoiser off. Per candidate: the source skeleton's error (``metrics.joint_errors``, mm), its
+candidate, ``{}``, the shipped settings). Every sequence of a selection set (``--set``:
+validation, the default, ``training.data.datasets.validation_sequences``; or dances, motions,
+crossed: ``benchmarks/accuracy.py``'s --dances, --motions, --crossed; never the test split)
+is read by the shipped SKR and refiner (``Retargeter.skeleton``), tracked by ``fit.track``
+with each candidate, and the fitted skeletons retargeted by ``Retargeter.step_skeleton``
+with the shipped weights, smoothing and denoiser off. Per candidate: the source skeleton's error (``metrics.joint_errors``, mm), its
 jitter (mean second difference, mm), its frames with crossed legs (``metrics.crossed_feet``),
 the frames where the start from SKR's reading won, the target's MPJPE, PA-MPJPE, Acc,
 PA-Acc (mm) and toe speed on the truth's contacts (m/s), frame-weighted, and the fit's
@@ -28,7 +29,10 @@ from minretarget.weights import load_weights
 from minretarget.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accuracy import CONTACT_HEIGHT, command_line, write_text  # noqa: E402
+from accuracy import CONTACT_HEIGHT, SELECTION_SETS, command_line, write_text  # noqa: E402
+
+SETS = {"validation": "validation", "dances": "training dances", "motions": "training motions",
+        "crossed": "crossed legs"}                # --set -> accuracy.py's split name
 
 
 def candidate(text):
@@ -83,17 +87,19 @@ def main(argv=None):
                         help="FitSettings fields as JSON, e.g. '{\"race_iterations\": 4}'")
     parser.add_argument("--cmu", default=str(Path(__file__).resolve().parents[2] / "shared"
                                               / "data" / "cmu"))
+    parser.add_argument("--set", choices=SETS, default="validation",
+                        help="the selection set (default: validation)")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args(argv)
     if not Path(args.cmu).is_dir():
-        parser.error(f"--cmu {args.cmu}: no such folder (the validation trials are read there)")
-    from training.data.datasets import validation_sequences
+        parser.error(f"--cmu {args.cmu}: no such folder (the {args.set} trials are read there)")
+    from training.data import datasets
     candidates = args.fit or [FitSettings()]
     weights = load_weights()
     reader = Retargeter(weights)
     runs = {index: [] for index in range(len(candidates))}
     fit_seconds = np.zeros(len(candidates))
-    for held_out in validation_sequences(args.cmu):
+    for held_out in getattr(datasets, SELECTION_SETS[SETS[args.set]])(args.cmu):
         sequence = held_out.build()
         reading = reader.skeleton(sequence["source_points"])
         for index, settings in enumerate(candidates):
@@ -116,7 +122,7 @@ def main(argv=None):
                           f"{key} {value}" for key, value in row.items())
               + f", {results[-1]['fit_ms_per_frame']:.1f} ms a frame")
     if args.json:
-        write_text(args.json, json.dumps({"candidates": results}, indent=2))
+        write_text(args.json, json.dumps({"set": args.set, "candidates": results}, indent=2))
 
 
 if __name__ == "__main__":

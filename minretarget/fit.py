@@ -122,6 +122,8 @@ class FitSettings(NamedTuple):
     robust_width: float = 0.03     # metres: distances well past it count little
     model_to_cloud: float = 0.5    # weight of model -> cloud beside cloud -> model
     reading_pull: float = 0.005    # weight of the joints' pull towards SKR's reading
+    reading_width: float = 0.0     # metres: a joint read this far from where the motion puts
+                                   # it is pulled a quarter as hard (0: every joint alike)
     motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
                                    # (mean over joints) is tried again from the reading
@@ -137,6 +139,8 @@ class FitSettings(NamedTuple):
                                    # which it is lost
     swap_legs_cost: float = 0.04   # metres: a frame whose better start costs more is also
                                    # fitted from SKR's reading with its legs swapped (0: never)
+    swap_legs_distance: float = 0.0  # metres: ... and so is a frame whose reading puts a lower
+                                     # leg's joint this far from the motion's (0: never)
 
 
 def check_fit_settings(settings):
@@ -155,8 +159,9 @@ def check_fit_settings(settings):
     if not isinstance(settings.settle_rounds, (int, np.integer)) or settings.settle_rounds < 0:
         raise ValueError(f"FitSettings.settle_rounds must be an integer >= 0, got "
                          f"{settings.settle_rounds!r}")
-    for name in ("robust_width", "model_to_cloud", "reading_pull", "motion_pull",
-                 "reseed_distance", "lost_leg_width", "lost_leg_distance", "swap_legs_cost"):
+    for name in ("robust_width", "model_to_cloud", "reading_pull", "reading_width",
+                 "motion_pull", "reseed_distance", "lost_leg_width", "lost_leg_distance",
+                 "swap_legs_cost", "swap_legs_distance"):
         value = getattr(settings, name)
         positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
@@ -374,13 +379,14 @@ def _apply_step_kernel(local, rotations, step, parents, out):
 
 @kernel
 def _pull_normal_equations_kernel(joints, goal, weight, parents, hessian, gradient):
-    """The pull of the joints (J, 3) towards ``goal`` (J, 3) with ``weight`` (spread over the
-    joints), added to the normal equations: joint k moves by t + sum over its strict ancestors
-    j of d_j x (p_k - p_j), so its rows are [I, -skew(p_k - p_j), ...]."""
-    scale = weight / joints.shape[0]                     # the rows' square: sqrt(w / J)^2
+    """The pull of the joints (J, 3) towards ``goal`` (J, 3), joint k's with ``weight[k]``
+    (J,) (spread over the joints), added to the normal equations: joint k moves by t + sum
+    over its strict ancestors j of d_j x (p_k - p_j), so its rows are [I, -skew(p_k - p_j),
+    ...]."""
     blocks = np.empty((joints.shape[0], 3, 3))           # the joint's 3 x 3 block per column
     columns = np.empty(joints.shape[0], np.int64)
     for k in range(joints.shape[0]):
+        scale = weight[k] / joints.shape[0]              # the rows' square: sqrt(w / J)^2
         count = 1
         columns[0] = 0                                   # the translation: identity
         blocks[0] = 0.0
@@ -591,7 +597,7 @@ def _gauss_newton(iterations, rest, tpose, bone_index, bone_weight, normals, par
         gradient[:] = 0.0
         _plane_normal_equations_kernel(paired, targets, weights, posed, posed_normals, lever,
                                        chain_joints, chain_count, hessian, gradient)
-        if pull_weight > 0.0:
+        if pull_weight.any():
             _pull_normal_equations_kernel(joints, pull_goal, pull_weight, parents, hessian,
                                           gradient)
         _damped_step_kernel(hessian, gradient, step)
@@ -806,11 +812,15 @@ def surface_terms(posed, cloud, cloud_grid, settings):
 
 
 def combined_pull(pulls):
-    """Several pulls of the joints, ((weight, goal (J, 3)), ...), as one: the weights' sum
-    towards their weighted mean goal (the same quadratic, up to a constant)."""
-    pulls = [(weight, goal) for weight, goal in pulls if weight]
-    total = sum(weight for weight, _ in pulls)
-    return total, (sum(weight * goal for weight, goal in pulls) / total if total else None)
+    """Several pulls of the joints, ((weight, goal (J, 3)), ...), each weight a number or
+    per joint (J,), as one: per joint the weights' sum (J,) towards their weighted mean goal
+    (J, 3) (the same quadratic, up to a constant)."""
+    total, weighted = np.zeros(NUM_JOINTS), np.zeros((NUM_JOINTS, 3))
+    for weight, goal in pulls:
+        weight = np.broadcast_to(np.asarray(weight, np.float64), (NUM_JOINTS,))
+        total = total + weight
+        weighted = weighted + weight[:, None] * goal
+    return total, weighted / np.where(total > 0, total, 1.0)[:, None]
 
 
 def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings, pulls=()):
@@ -836,8 +846,7 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         model.normals, _PARENTS, *chains.arguments(), cloud, cloud_grid.origin,
         cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
-        float(settings.model_to_cloud), int(settings.model_stride), float(pull_weight),
-        np.zeros((NUM_JOINTS, 3)) if pull_goal is None else np.asarray(pull_goal, np.float64),
+        float(settings.model_to_cloud), int(settings.model_stride), pull_weight, pull_goal,
         local, root, joints)
     return local, root, joints, cost
 
@@ -901,6 +910,17 @@ def subsample(cloud, count, frame):
     return np.asarray(seeded_subset(cloud, count, frame), np.float64)
 
 
+def reading_weight(settings, reading, predicted):
+    """The reading's pull, per joint (J,) where ``settings.reading_width`` is set: SKR's
+    joints (J, 3) far from where the motion puts them (``predicted`` (J, 3)) are likely
+    misread (a leg read on the wrong side, a body read turned), and their pull would drag
+    the fit off the cloud; Geman-McClure in that distance. Otherwise the one weight."""
+    if not settings.reading_width:
+        return settings.reading_pull
+    ratio = np.linalg.norm(reading - predicted, axis=1) / settings.reading_width
+    return settings.reading_pull / (1.0 + ratio * ratio) ** 2
+
+
 def start_fit(model, settings, cloud, reading):
     """The first frame: shape and pose in alternation, from the mean body on SKR's reading
     -> FitState, joints (J, 3)."""
@@ -933,9 +953,10 @@ def fit_frame(model, settings, state, cloud, reading):
     # After a frame without the body, its motion is stale: no pull to it, and the frame found
     # starts the motion again (a body that jumped would otherwise be pulled back for good).
     moving = state.cost <= LOST_COST
-    pulls = ((settings.reading_pull, reading),)
+    predicted = last + 0.5 * (last - before) if moving else last
+    pulls = ((reading_weight(settings, reading, predicted), reading),)
     if moving:
-        pulls += ((settings.motion_pull, last + 0.5 * (last - before)),)
+        pulls += ((settings.motion_pull, predicted),)
     race = settings._replace(iterations=min(settings.race_iterations, settings.iterations))
     local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, state.local,
                                          state.root, race, pulls)
@@ -946,13 +967,16 @@ def fit_frame(model, settings, state, cloud, reading):
                          pulls)
         if fresh[3] < cost:
             (local, root, joints, cost), reseeded = fresh, True
-    if settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost:
-        # The better start explains the cloud poorly: SKR may have read the legs swapped (a
-        # leg across the other, the body turned), and the track followed. The reading with
-        # its legs swapped is fitted too; if it meets the cloud better, it is this frame's
-        # reading from here on.
+    if ((settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost)
+            or (settings.swap_legs_distance > 0 and moving and np.linalg.norm(
+                (reading - predicted)[_SWAPPED_LEGS != np.arange(NUM_JOINTS)], axis=1).max()
+                > settings.swap_legs_distance)):
+        # The better start explains the cloud poorly, or SKR's legs are not where the motion
+        # puts them: SKR may have read the legs swapped (a leg across the other, the body
+        # turned), and the track may have followed. The reading with its legs swapped is
+        # fitted too; if it meets the cloud better, it is this frame's reading from here on.
         swapped = reading[_SWAPPED_LEGS]
-        swapped_pulls = ((settings.reading_pull, swapped),) + pulls[1:]
+        swapped_pulls = ((reading_weight(settings, swapped, predicted), swapped),) + pulls[1:]
         other = fit_pose(model, rest, tpose_joints, cloud, grid,
                          local_from_joints(swapped, tpose_joints), swapped[0].copy(), race,
                          swapped_pulls)

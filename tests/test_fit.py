@@ -199,8 +199,12 @@ def test_pull_normal_equations_are_the_joints_derivative_products(model):
                                  fit.forward(local, root, tpose)[1].ravel())     # (J * 3, P)
     rows, values = twins.joint_pull_rows(joints, joints + 0.01, weight=NUM_JOINTS)  # scale 1
     np.testing.assert_allclose(rows, numeric, atol=2e-5)
+    # joint by joint: some pulled harder, some not at all
+    weight = np.random.default_rng(8).uniform(0, 2 * NUM_JOINTS, NUM_JOINTS)
+    weight[[3, 10]] = 0.0
+    rows, values = twins.joint_pull_rows(joints, joints + 0.01, weight=weight)
     hessian, gradient = np.eye(fit.PARAMETERS), np.ones(fit.PARAMETERS)
-    fit._pull_normal_equations_kernel(joints, joints + 0.01, float(NUM_JOINTS), fit._PARENTS,
+    fit._pull_normal_equations_kernel(joints, joints + 0.01, weight, fit._PARENTS,
                                       hessian, gradient)
     np.testing.assert_allclose(hessian, np.eye(fit.PARAMETERS) + rows.T @ rows, atol=1e-12)
     np.testing.assert_allclose(gradient, 1 + rows.T @ values, atol=1e-12)
@@ -275,9 +279,11 @@ def test_fit_pose_matches_its_twin(model):
                            np.random.default_rng(17).normal(scale=0.2, size=fit.PARAMETERS))
     goal = fit.forward(local, root, tpose)[1] + 0.03
     settings = settings._replace(iterations=3)
+    per_joint = np.linspace(0.0, 0.008, NUM_JOINTS)
     got = fit.fit_pose(model, rest, tpose, cloud, build_grid(cloud), *start, settings,
-                       ((0.004, goal), (0.006, goal)))
-    want = fit_pose_twin(model, rest, tpose, cloud, *start, settings, 0.01, goal)
+                       ((0.004, goal), (per_joint, goal + 0.02)))
+    want = fit_pose_twin(model, rest, tpose, cloud, *start, settings, 0.004 + per_joint,
+                         goal + 0.02 * (per_joint / (0.004 + per_joint))[:, None])
     for got_part, want_part in zip(got, want):
         np.testing.assert_allclose(got_part, want_part, atol=1e-9)
 

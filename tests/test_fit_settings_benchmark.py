@@ -27,3 +27,10 @@ def test_summary_weights_sums_and_pools():
     assert summary["source all"] == pytest.approx((3 * 1.0 + 5.0) / 4)
     assert summary["crossed"] == 3 and summary["reading won"] == 1
     assert summary["toes"] == pytest.approx(1.0 / 4)
+
+
+def test_every_set_names_a_selection_set_maker():
+    from training.data import datasets
+    for split in fit_settings.SETS.values():
+        assert callable(getattr(datasets, fit_settings.SELECTION_SETS[split]))
+    assert "test" not in fit_settings.SETS

@@ -391,7 +391,8 @@ def plane_normal_equations(index, targets, weights, points, normals, lever, reac
 def joint_pull_rows(joints, goal, weight):
     """The rows and values of the joints' pull towards ``goal`` (minretarget.fit's
     _pull_normal_equations_kernel): joint k moves by t + sum over strict ancestors j of
-    d_j x (p_k - p_j); scaled by sqrt(weight / J) -> (J * 3, 3 + 3 J), (J * 3,)."""
+    d_j x (p_k - p_j); joint k's rows scaled by sqrt(weight_k / J) (``weight`` a number or
+    (J,)) -> (J * 3, 3 + 3 J), (J * 3,)."""
     count = len(PARENTS)
     rows = np.zeros((count, 3, 3 + 3 * count))
     for k in range(count):
@@ -401,5 +402,5 @@ def joint_pull_rows(joints, goal, weight):
             lever = joints[k] - joints[j]
             rows[k, :, 3 + 3 * j:6 + 3 * j] = -np.cross(np.eye(3), lever)   # d x l, per d
             j = PARENTS[j]
-    scale = np.sqrt(weight / count)
-    return scale * rows.reshape(count * 3, -1), scale * (joints - goal).ravel()
+    scale = np.repeat(np.sqrt(np.broadcast_to(weight, (count,)) / count), 3)
+    return scale[:, None] * rows.reshape(count * 3, -1), scale * (joints - goal).ravel()
