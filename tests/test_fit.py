@@ -395,6 +395,54 @@ def test_legs_read_swapped_are_swapped_back(model):
     assert error(fitted(joints, 0.01)) < 0.015
 
 
+def test_reading_weight_falls_with_the_distance_from_the_motion():
+    """Geman-McClure in the distance between each joint's reading and its prediction: the
+    full pull where they agree, a quarter at ``reading_width``, almost none ten times as far;
+    without a width, the one weight as before."""
+    settings = fit.FitSettings(reading_pull=0.004, reading_width=0.1)
+    predicted = np.zeros((NUM_JOINTS, 3))
+    reading = predicted.copy()
+    reading[1, 0], reading[2, 1] = 0.1, 1.0
+    weight = fit.reading_weight(settings, reading, predicted)
+    assert weight.shape == (NUM_JOINTS,)
+    assert weight[0] == 0.004 and weight[1] == pytest.approx(0.001)
+    assert weight[2] == pytest.approx(0.004 / 101 ** 2)
+    assert fit.reading_weight(settings._replace(reading_width=0.0), reading, predicted) == 0.004
+
+
+def test_a_reading_far_from_the_motion_pulls_less_and_has_its_legs_tried_swapped(model,
+                                                                             monkeypatch):
+    """The track is right and SKR reads the legs swapped (each lower leg 30 cm and more from
+    where the motion puts it): with ``reading_width`` the misread joints barely pull, so the
+    fit stays nearer the truth; with ``swap_legs_distance`` the reading with its legs swapped
+    is fitted too (one more fit), and not when the reading agrees with the motion."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    truth, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    truth[fit.JOINT_INDEX["left_hip"]] = turned([1, 0, 0], -0.7)
+    truth[fit.JOINT_INDEX["right_hip"]] = turned([1, 0, 0], 0.4)
+    truth[fit.JOINT_INDEX["left_knee"]] = turned([1, 0, 0], 0.5)
+    rotations, joints = fit.forward(truth, root, tpose)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    state = fit.FitState(30, shape, truth, root, np.stack([joints, joints]), (), 0.03)
+    swapped = joints[fit._SWAPPED_LEGS]
+    calls = []
+    fit_pose = fit.fit_pose
+    monkeypatch.setattr(fit, "fit_pose", lambda *a, **k: calls.append(1) or fit_pose(*a, **k))
+
+    def fitted(reading, **settings):
+        calls.clear()
+        found = fit.fit_frame(model, fit.FitSettings(swap_legs_cost=0.0, **settings), state,
+                              cloud, reading)[1]
+        return np.linalg.norm(found - joints, axis=1).mean(), len(calls)
+
+    plain, plain_calls = fitted(swapped)
+    robust, _ = fitted(swapped, reading_width=0.1)
+    assert robust < 0.5 * plain
+    assert fitted(swapped, swap_legs_distance=0.1)[1] == plain_calls + 1
+    assert fitted(joints + 0.01, swap_legs_distance=0.1)[1] == plain_calls
+
+
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
     shape, rest, tpose, _, _, rotations, joints = posed_state(model, seed=9, turn=0.1)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
@@ -455,7 +503,8 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("reading_pull", -1.0), ("settle_rounds", -1),
                          ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
-                         ("swap_legs_cost", -0.01)):
+                         ("swap_legs_cost", -0.01), ("reading_width", -0.1),
+                         ("swap_legs_distance", float("nan"))):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))
