@@ -122,7 +122,7 @@ class FitSettings(NamedTuple):
     robust_width: float = 0.03     # metres: distances well past it count little
     model_to_cloud: float = 0.5    # weight of model -> cloud beside cloud -> model
     reading_pull: float = 0.005    # weight of the joints' pull towards SKR's reading
-    reading_width: float = 0.0     # metres: a joint read this far from where the motion puts
+    reading_width: float = 0.1     # metres: a joint read this far from where the motion puts
                                    # it is pulled a quarter as hard (0: every joint alike)
     motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
@@ -139,7 +139,7 @@ class FitSettings(NamedTuple):
                                    # which it is lost
     swap_legs_cost: float = 0.04   # metres: a frame whose better start costs more is also
                                    # fitted from SKR's reading with its legs swapped (0: never)
-    swap_legs_distance: float = 0.0  # metres: ... and so is a frame whose reading puts a lower
+    swap_legs_distance: float = 0.1  # metres: ... and so is a frame whose reading puts a lower
                                      # leg's joint this far from the motion's (0: never)
 
 

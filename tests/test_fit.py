@@ -432,8 +432,8 @@ def test_a_reading_far_from_the_motion_pulls_less_and_has_its_legs_tried_swapped
 
     def fitted(reading, **settings):
         calls.clear()
-        found = fit.fit_frame(model, fit.FitSettings(swap_legs_cost=0.0, **settings), state,
-                              cloud, reading)[1]
+        plain = fit.FitSettings(swap_legs_cost=0.0, reading_width=0.0, swap_legs_distance=0.0)
+        found = fit.fit_frame(model, plain._replace(**settings), state, cloud, reading)[1]
         return np.linalg.norm(found - joints, axis=1).mean(), len(calls)
 
     plain, plain_calls = fitted(swapped)
