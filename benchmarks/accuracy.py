@@ -1,7 +1,7 @@
 """Accuracy of the runtime on the test benchmark (../shared/DESIGN.md, "Accuracy protocol").
 
-    python benchmarks/accuracy.py (--validation | --dances | --motions | --crossed | --report [--quick])
-                                  [--rows ROW ...]
+    python benchmarks/accuracy.py (--validation | --dances | --motions | --crossed
+                                   | --report [--quick]) [--rows ROW ...]
                                   [--weights FILE] [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
                                   [--compare OTHER.json]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]

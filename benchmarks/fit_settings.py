@@ -6,13 +6,13 @@ Each ``--fit`` is a JSON object of ``minretarget.fit.FitSettings`` fields (defau
 candidate, ``{}``, the shipped settings). Every sequence of a selection set (``--set``:
 validation, the default, ``training.data.datasets.validation_sequences``; or dances, motions,
 crossed: ``benchmarks/accuracy.py``'s --dances, --motions, --crossed; never the test split)
-is read by the shipped SKR and refiner (``Retargeter.skeleton``), tracked by ``fit.track``
-with each candidate, and the fitted skeletons retargeted by ``Retargeter.step_skeleton``
-with the shipped weights, smoothing and denoiser off. Per candidate: the source skeleton's error (``metrics.joint_errors``, mm), its
-jitter (mean second difference, mm), its frames with crossed legs (``metrics.crossed_feet``),
-the frames where the start from SKR's reading won, the target's MPJPE, PA-MPJPE, Acc,
-PA-Acc (mm) and toe speed on the truth's contacts (m/s), frame-weighted, and the fit's
-milliseconds a frame (on this machine, with whatever else runs).
+is read by the shipped SKR and refiner (``Retargeter.skeleton``), tracked by ``fit.track`` with
+each candidate, and the fitted skeletons retargeted by ``Retargeter.step_skeleton`` with the
+shipped weights, smoothing and denoiser off. Per candidate: the source skeleton's error
+(``metrics.joint_errors``, mm), its jitter (mean second difference, mm), its frames with crossed
+legs (``metrics.crossed_feet``), the frames where the start from SKR's reading won, the target's
+MPJPE, PA-MPJPE, Acc, PA-Acc (mm) and toe speed on the truth's contacts (m/s), frame-weighted,
+and the fit's milliseconds a frame (on this machine, with whatever else runs).
 """
 import argparse
 import json

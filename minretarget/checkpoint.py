@@ -213,6 +213,8 @@ def difference(key, then, now):
     if key.endswith("_sha256"):
         return f"the {key[:-len('_sha256')]} differs (its SHA-256)"
     if key in _FIELDS and isinstance(then, list) and isinstance(now, list):
+        if len(then) != len(now):                  # a version with other fields made it
+            return f"{key}: {len(then)} settings then, {len(now)} now (another version)"
         return "; ".join(f"{key} {field} {a:g} then, {b:g} now"
                          for field, a, b in zip(_FIELDS[key], then, now) if a != b)
 

@@ -17,14 +17,19 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    about it), minimising robust (Geman-McClure) point-to-plane distances from each cloud
    point to its nearest model point and, weaker, from each model point to its nearest cloud
    point, plus pulls of the joints towards SKR's reading and towards the last frame's joints
-   moved on by half their last step (the motion continued, damped).
+   moved on by half their last step (the motion continued, damped). The reading's pull is
+   per joint, weaker where a joint is read far from that prediction (``reading_width``,
+   Geman-McClure): a leg read on the wrong side, a body read turned, would drag the fit off
+   the cloud.
 3. Starts. A frame starts from the last frame's pose, so left and right carry over. When that
    fit and SKR's reading disagree (by default: always), the frame is also fitted from the
    reading's pose (the analytic bone alignment of the model onto it); after
    ``race_iterations`` steps from each, the one that meets the cloud better goes on: a lost
    track recovers, a leg never passes through empty space to follow the reading. When the
-   better one explains the cloud poorly (``swap_legs_cost``), the reading with its lower
-   legs swapped is a third start (SKR reads some crossed legs swapped). When the
+   better one explains the cloud poorly (``swap_legs_cost``), or the reading puts a lower
+   leg's joint far from the motion's prediction (``swap_legs_distance``; only after a frame
+   with the body), the reading with its lower legs swapped is a third start (SKR reads some
+   crossed legs swapped). When the
    better one leaves a shin or foot in empty space (``lost_legs``: a kick neither start
    followed), its next steps run at a wider robust width without the reading's pull, to
    reach the leg's points again. A cloud where the body is not found (``LOST_COST``) is
@@ -123,7 +128,8 @@ class FitSettings(NamedTuple):
     model_to_cloud: float = 0.5    # weight of model -> cloud beside cloud -> model
     reading_pull: float = 0.005    # weight of the joints' pull towards SKR's reading
     reading_width: float = 0.1     # metres: a joint read this far from where the motion puts
-                                   # it is pulled a quarter as hard (0: every joint alike)
+                                   # it (the held pose after a frame without the body) is
+                                   # pulled a quarter as hard (0: every joint alike)
     motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
                                    # (mean over joints) is tried again from the reading
@@ -138,9 +144,11 @@ class FitSettings(NamedTuple):
     lost_leg_share: float = 0.3    # the share of a lower leg's points in empty space past
                                    # which it is lost
     swap_legs_cost: float = 0.04   # metres: a frame whose better start costs more is also
-                                   # fitted from SKR's reading with its legs swapped (0: never)
+                                   # fitted from SKR's reading with its legs swapped (0: not
+                                   # for its cost)
     swap_legs_distance: float = 0.1  # metres: ... and so is a frame whose reading puts a lower
-                                     # leg's joint this far from the motion's (0: never)
+                                     # leg's joint this far from the motion's (0: not for
+                                     # that)
 
 
 def check_fit_settings(settings):
@@ -818,6 +826,8 @@ def combined_pull(pulls):
     total, weighted = np.zeros(NUM_JOINTS), np.zeros((NUM_JOINTS, 3))
     for weight, goal in pulls:
         weight = np.broadcast_to(np.asarray(weight, np.float64), (NUM_JOINTS,))
+        if not weight.any():                   # off: its goal may be anything, even nan
+            continue
         total = total + weight
         weighted = weighted + weight[:, None] * goal
     return total, weighted / np.where(total > 0, total, 1.0)[:, None]
@@ -830,7 +840,7 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         rest, tpose_joints: the shaped model (``shaped``).
         cloud: (P, 3) float64 points; cloud_grid: theirs (``nearest.build_grid``).
         local, root: the start, (J, 3, 3) and (3,).
-        pulls: ((weight, goal joints (J, 3)), ...).
+        pulls: ((weight: a number or per joint (J,), goal joints (J, 3)), ...).
     Returns:
         local, root, joints (J, 3), cost: the mean truncated distance cloud -> model plus
         ``model_to_cloud`` times model -> cloud (metres, ``surface_terms``), measured before
@@ -951,7 +961,8 @@ def fit_frame(model, settings, state, cloud, reading):
     rest, tpose_joints = shaped(model, state.shape)
     before, last = state.joints
     # After a frame without the body, its motion is stale: no pull to it, and the frame found
-    # starts the motion again (a body that jumped would otherwise be pulled back for good).
+    # starts the motion again (a body that jumped would otherwise be pulled back for good);
+    # the reading's joints are then weighed against the held pose.
     moving = state.cost <= LOST_COST
     predicted = last + 0.5 * (last - before) if moving else last
     pulls = ((reading_weight(settings, reading, predicted), reading),)
@@ -969,7 +980,7 @@ def fit_frame(model, settings, state, cloud, reading):
             (local, root, joints, cost), reseeded = fresh, True
     if ((settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost)
             or (settings.swap_legs_distance > 0 and moving and np.linalg.norm(
-                (reading - predicted)[_SWAPPED_LEGS != np.arange(NUM_JOINTS)], axis=1).max()
+                (reading - predicted)[_LOWER_LEGS >= 0], axis=1).max()
                 > settings.swap_legs_distance)):
         # The better start explains the cloud poorly, or SKR's legs are not where the motion
         # puts them: SKR may have read the legs swapped (a leg across the other, the body

@@ -134,23 +134,24 @@ def quaternion_multiply(a, b):
                      aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
-# ----------------------------------------------------------------------------- forward kinematics
-
 def quaternion_slerp(q0, q1, weight):
-    """(N, 4) quaternions, (N,) weights in [0, 1] -> (N, 4) float64 shortest-path slerp."""
+    """(..., 4) quaternions, (...) weights in [0, 1] -> (..., 4) float64 shortest-path slerp."""
     q0 = np.asarray(q0, dtype=np.float64)
     q1 = np.asarray(q1, dtype=np.float64)
+    weight = np.asarray(weight, dtype=np.float64)
     dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)               # q and -q are the same rotation
+    q1 = np.where(dot[..., None] < 0, -q1, q1)             # q and -q are the same rotation
     angle = np.arccos(np.clip(np.abs(dot), 0.0, 1.0))
     sin = np.sin(angle)
     small = sin < 1e-6                                     # nearly equal: lerp is exact enough
     safe = np.where(small, 1.0, sin)
     w0 = np.where(small, 1 - weight, np.sin((1 - weight) * angle) / safe)
     w1 = np.where(small, weight, np.sin(weight * angle) / safe)
-    q = w0[:, None] * q0 + w1[:, None] * q1
+    q = w0[..., None] * q0 + w1[..., None] * q1
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
+
+# ----------------------------------------------------------------------------- forward kinematics
 
 def forward_kinematics(rotations, root, tpose_joints):
     """Pose a skeleton.

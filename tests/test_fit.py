@@ -361,12 +361,9 @@ def test_a_shin_in_empty_space_is_reached_for(model):
     assert miss[fit.FitSettings().lost_leg_width] < 0.5 * miss[0.0]
 
 
-def test_legs_read_swapped_are_swapped_back(model):
-    """SKR reads the legs swapped (each where the other is) and the track has followed: the
-    frame's better start explains the cloud poorly, so the reading with its legs swapped is
-    tried too and wins. The cloud is the model's own surface, so its costs are a quarter of a
-    real cloud's (0.03-0.04 m): the threshold is lowered to match. Without the third start
-    the legs stay swapped; a reading that has the legs right keeps them."""
+def legs_apart_scene(model):
+    """The mean body with its legs apart (one forward, one back, a knee bent) and its own
+    surface as the cloud -> shape, tpose, root, true local rotations, joints, cloud."""
     shape = np.zeros(len(model.points_basis))
     rest, tpose = fit.shaped(model, shape)
     truth, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
@@ -375,6 +372,16 @@ def test_legs_read_swapped_are_swapped_back(model):
     truth[fit.JOINT_INDEX["left_knee"]] = turned([1, 0, 0], 0.5)
     rotations, joints = fit.forward(truth, root, tpose)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    return shape, tpose, root, truth, joints, cloud
+
+
+def test_legs_read_swapped_are_swapped_back(model):
+    """SKR reads the legs swapped (each where the other is) and the track has followed: the
+    frame's better start explains the cloud poorly, so the reading with its legs swapped is
+    tried too and wins. The cloud is the model's own surface, so its costs are a quarter of a
+    real cloud's (0.03-0.04 m): the threshold is lowered to match. Without the third start
+    the legs stay swapped; a reading that has the legs right keeps them."""
+    shape, tpose, root, _, joints, cloud = legs_apart_scene(model)
     swapped = joints[fit._SWAPPED_LEGS]
     assert np.array_equal(swapped[fit._SWAPPED_LEGS], joints)
     ankle = fit.JOINT_INDEX["left_ankle"]
@@ -384,8 +391,8 @@ def test_legs_read_swapped_are_swapped_back(model):
         local = fit.local_from_joints(reading, tpose)          # the track as the reading
         _, held = fit.forward(local, root, tpose)
         state = fit.FitState(30, shape, local, root, np.stack([held, held]), (), 0.03)
-        return fit.fit_frame(model, fit.FitSettings(swap_legs_cost=swap_legs_cost), state,
-                             cloud, reading)[1]
+        settings = fit.FitSettings(swap_legs_cost=swap_legs_cost, swap_legs_distance=0.0)
+        return fit.fit_frame(model, settings, state, cloud, reading)[1]
 
     def error(found):
         return np.linalg.norm(found - joints, axis=1).mean()
@@ -416,31 +423,41 @@ def test_a_reading_far_from_the_motion_pulls_less_and_has_its_legs_tried_swapped
     where the motion puts it): with ``reading_width`` the misread joints barely pull, so the
     fit stays nearer the truth; with ``swap_legs_distance`` the reading with its legs swapped
     is fitted too (one more fit), and not when the reading agrees with the motion."""
-    shape = np.zeros(len(model.points_basis))
-    rest, tpose = fit.shaped(model, shape)
-    truth, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
-    truth[fit.JOINT_INDEX["left_hip"]] = turned([1, 0, 0], -0.7)
-    truth[fit.JOINT_INDEX["right_hip"]] = turned([1, 0, 0], 0.4)
-    truth[fit.JOINT_INDEX["left_knee"]] = turned([1, 0, 0], 0.5)
-    rotations, joints = fit.forward(truth, root, tpose)
-    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    shape, _, root, truth, joints, cloud = legs_apart_scene(model)
     state = fit.FitState(30, shape, truth, root, np.stack([joints, joints]), (), 0.03)
     swapped = joints[fit._SWAPPED_LEGS]
     calls = []
     fit_pose = fit.fit_pose
     monkeypatch.setattr(fit, "fit_pose", lambda *a, **k: calls.append(1) or fit_pose(*a, **k))
 
-    def fitted(reading, **settings):
+    def fitted(reading, after=state, **settings):
         calls.clear()
         plain = fit.FitSettings(swap_legs_cost=0.0, reading_width=0.0, swap_legs_distance=0.0)
-        found = fit.fit_frame(model, plain._replace(**settings), state, cloud, reading)[1]
+        found = fit.fit_frame(model, plain._replace(**settings), after, cloud, reading)[1]
         return np.linalg.norm(found - joints, axis=1).mean(), len(calls)
 
     plain, plain_calls = fitted(swapped)
     robust, _ = fitted(swapped, reading_width=0.1)
     assert robust < 0.5 * plain
-    assert fitted(swapped, swap_legs_distance=0.1)[1] == plain_calls + 1
+    swapped_start, swapped_calls = fitted(swapped, swap_legs_distance=0.1)
+    assert swapped_calls == plain_calls + 1 and swapped_start < 0.5 * plain
     assert fitted(joints + 0.01, swap_legs_distance=0.1)[1] == plain_calls
+    # after a frame without the body its motion is stale: the distance says nothing
+    lost = state._replace(cost=fit.LOST_COST + 0.01)
+    assert fitted(swapped, lost, swap_legs_distance=0.1)[1] == fitted(swapped, lost)[1]
+
+
+def test_combined_pull_sums_per_joint_and_skips_pulls_that_are_off():
+    goal_a, goal_b = np.zeros((NUM_JOINTS, 3)), np.ones((NUM_JOINTS, 3))
+    per_joint = np.zeros(NUM_JOINTS)
+    per_joint[1] = 3.0
+    total, goal = fit.combined_pull(((1.0, goal_a), (per_joint, goal_b),
+                                     (0.0, np.full((NUM_JOINTS, 3), np.nan))))
+    assert total[0] == 1.0 and total[1] == 4.0
+    np.testing.assert_array_equal(goal[0], 0.0)
+    np.testing.assert_array_equal(goal[1], 0.75)
+    total, goal = fit.combined_pull(((0.0, goal_b),))            # nothing pulls
+    assert not total.any() and np.isfinite(goal).all()
 
 
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):

@@ -431,7 +431,10 @@ def test_a_bad_frame_fixed_after_it_stopped_the_run_resumes(inputs, tmp_path, ca
     ("target_sha256", "ab" * 32, "cd" * 32, "the target differs (its SHA-256)"),
     ("smoothing", [0.5, 1.0], None, "smoothing 0.5 1.0 then, off now"),
     ("source_space", None, ["cm", "y"], "source_space off then, cm y now"),
-    ("points", 2048, 1024, "points 2048 then, 1024 now")])
+    ("points", 2048, 1024, "points 2048 then, 1024 now"),
+    # a version whose settings had other fields: counted, not zipped against today's names
+    ("source_fit", [4, 1024, 0.03], [4, 1024, 0.03, 0.5],
+     "source_fit: 3 settings then, 4 now (another version)")])
 def test_a_resume_names_what_differs_in_words(key, then, now, said):
     assert difference(key, then, now) == said
 

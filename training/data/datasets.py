@@ -299,20 +299,20 @@ def _crossing(count, rng):
 
 
 def crossings_over_time(rotations, rng, gap=(20, 40), hold=(15, 45), ramp=8):
-    """A motion (T, J, 4) with one leg crossed over the other now and then, as a dancer
-    crosses a foot over and back: after a gap of ``gap`` frames (uniform), a crossing drawn
-    as ``crossed_legs`` draws one is blended in over ``ramp`` frames (slerp, smoothstep),
-    held ``hold`` frames and blended out over ``ramp``; the other leg and the rest of the
-    pose keep the motion. Returns the rotations (T, J, 4) float32 and each frame's weight of
-    the crossing (T,) float32 (0: the motion's own legs)."""
+    """A motion (T, J, 4) with one leg crossed over the other now and then, as a dancer crosses a
+    foot over and back: after a gap of ``gap`` frames (uniform in [low, high)), a crossing
+    drawn as ``crossed_legs`` draws one is blended in over ``ramp`` frames (slerp,
+    smoothstep), held ``hold`` frames (likewise) and blended out over ``ramp``; the other
+    leg and the rest of the pose keep the motion. Returns the rotations (T, J, 4) float32
+    and each frame's weight of the crossing (T,) float32 (0: the motion's own legs)."""
     rotations = np.array(rotations, dtype=np.float32)
     frames = len(rotations)
     weight = np.zeros(frames, np.float32)
+    rise = np.arange(1, ramp + 1) / (ramp + 1)
+    rise = rise * rise * (3 - 2 * rise)                              # smoothstep
     start = int(rng.integers(*gap))
     while start < frames:
         held = int(rng.integers(*hold))
-        rise = np.arange(1, ramp + 1) / (ramp + 1)
-        rise = rise * rise * (3 - 2 * rise)                          # smoothstep
         window = np.concatenate([rise, np.ones(held), rise[::-1]])[:frames - start]
         span = slice(start, start + len(window))
         left, *angles = _crossing(1, rng)
@@ -554,12 +554,17 @@ DANCE_TRIALS = ("05_02", "05_06", "05_08", "05_12", "05_14", "05_18", "martial_0
 def dance_sequences(cmu_dir, max_frames=600, points=2048):
     """Benchmark sequences of ``DANCE_TRIALS`` on held-out validation bodies, as
     ``validation_sequences`` makes them (its seeds offset), as ``HeldOutSequence``s."""
+    return _on_validation_bodies(list(enumerate(_dance_trials(cmu_dir))), max_frames, points,
+                                 seed=1)
+
+
+def _dance_trials(cmu_dir):
+    """The ``Trial``s of ``DANCE_TRIALS``, in that order (FileNotFoundError if any is missing)."""
     trials = {t.name: t for t in list_trials(cmu_dir)}
     missing = [name for name in DANCE_TRIALS if name not in trials]
     if missing:
         raise FileNotFoundError(f"dance trials {missing} not found under {cmu_dir}")
-    return _on_validation_bodies(list(enumerate(trials[name] for name in DANCE_TRIALS)),
-                                 max_frames, points, seed=1)
+    return [trials[name] for name in DANCE_TRIALS]
 
 
 # Every other motion category of the training split (walks, runs, jumps, climbs, everyday,
@@ -593,25 +598,25 @@ def motion_sequences(cmu_dir, per_category=4, max_frames=240, points=2048):
 # set for legs that cross, which the test split's dances show and the other selection sets
 # barely do (the training split has no Indian dance).
 def crossed_sequences(cmu_dir, max_frames=240, points=2048):
-    """``DANCE_TRIALS`` with ``crossings_over_time`` (seeded per trial), on held-out
-    validation bodies, as ``validation_sequences`` makes them (its seeds offset), as
-    ``HeldOutSequence``s named "<trial>+crossed"."""
-    trials = {t.name: t for t in list_trials(cmu_dir)}
-
+    """``DANCE_TRIALS`` with ``crossings_over_time``, on held-out validation bodies, as
+    ``validation_sequences`` makes them (its seeds offset), as ``HeldOutSequence``s named
+    "<trial>+crossed". Trial k's crossings are drawn from the seed (3, k), the same seed as
+    its clouds' sampling: harmless, and kept so that the set stays the one measured."""
     def crossed(motion, k):
         rotations, _ = crossings_over_time(motion.rotations, np.random.default_rng([3, k]))
         return dataclasses.replace(motion, rotations=rotations, name=f"{motion.name}+crossed")
 
-    return _on_validation_bodies(list(enumerate(trials[name] for name in DANCE_TRIALS)),
-                                 max_frames, points, seed=3, vary=crossed)
+    return _on_validation_bodies(list(enumerate(_dance_trials(cmu_dir))), max_frames, points,
+                                 seed=3, vary=crossed)
 
 
 class HeldOutSequence(NamedTuple):
-    """One sequence of ``validation_sequences``, ``dance_sequences`` or ``motion_sequences``,
-    known before it is
-    built: a caller can check names and lengths (against a saved run, say) at once."""
+    """One sequence of ``validation_sequences``, ``dance_sequences``, ``motion_sequences`` or
+    ``crossed_sequences``, known before it is built: a caller can check names and lengths
+    (against a saved run, say) at once."""
     trial: Trial
-    name: str            # the sequence's: the trial's, or "<trial>@<first frame>" for a run
+    name: str            # the sequence's: the trial's, or "<trial>@<first frame>" for a run;
+                         # "+crossed" after it in ``crossed_sequences``
     frames: int
     build: object        # () -> the sequence's dict, as ``benchmark_sequence`` makes it
 
