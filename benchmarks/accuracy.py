@@ -604,10 +604,12 @@ def select_sequences(paths, quick):
     return chosen, QUICK_FRAMES
 
 
-# The selection sets (never the test split), by the split name a run records: their
-# sequences' maker in training.data.datasets.
-SELECTION_SETS = {"validation": "validation_sequences", "training dances": "dance_sequences",
-                  "training motions": "motion_sequences", "crossed legs": "crossed_sequences"}
+# The selection sets (never the test split), by their option (--validation, ...): the split
+# name a run records, and their sequences' maker in training.data.datasets.
+SELECTION_SETS = {"validation": ("validation", "validation_sequences"),
+                  "dances": ("training dances", "dance_sequences"),
+                  "motions": ("training motions", "motion_sequences"),
+                  "crossed": ("crossed legs", "crossed_sequences")}
 
 
 def main(argv=None):
@@ -650,23 +652,19 @@ def main(argv=None):
                         help="build DIR/test first if it is absent (about 13 minutes)")
     add_report_option(parser)
     args = parser.parse_args(argv)
+    selection = next((key for key in SELECTION_SETS if getattr(args, key)), None)
     if args.from_json:
         given = [option for option, value in (
-            ("--quick", args.quick), ("--validation", args.validation),
-            ("--dances", args.dances), ("--motions", args.motions),
-            ("--crossed", args.crossed), ("--weights", args.weights),
+            ("--quick", args.quick), (f"--{selection}", selection), ("--weights", args.weights),
             ("--rows", args.rows != list(ROWS)), ("--build", args.build),
             ("--report", args.report)) if value]
         if given:
             parser.error(f"--from-json prints a saved run: {', '.join(given)} would not apply")
-    elif args.report and (args.validation or args.dances or args.motions or args.crossed):
-        parser.error("--report is for the test split; --validation, --dances, --motions and "
-                     "--crossed need none")
+    elif args.report and selection:
+        parser.error(f"--report is for the test split; --{selection} needs none")
     saved = load_results(args.from_json) if args.from_json else None
-    split = (saved["split"] if saved else "validation" if args.validation
-             else "training dances" if args.dances
-             else "training motions" if args.motions
-             else "crossed legs" if args.crossed else "test")
+    split = (saved["split"] if saved else SELECTION_SETS[selection][0] if selection
+             else "test")
     if split == "test" and not saved:       # refused before anything is built or read
         refuse_test_split(parser, args)
     quick = saved.get("quick", False) if saved else args.quick
@@ -702,7 +700,7 @@ def main(argv=None):
         parser.error(f"--cmu {args.cmu}: no such folder (the {split} trials are read there)")
     if split != "test":
         from training.data import datasets
-        held_out = getattr(datasets, SELECTION_SETS[split])(args.cmu)
+        held_out = getattr(datasets, SELECTION_SETS[selection][1])(args.cmu)
         loaders = [sequence.build for sequence in held_out]
         planned = [(sequence.name, sequence.frames) for sequence in held_out]
     else:

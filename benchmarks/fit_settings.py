@@ -31,9 +31,6 @@ from minretarget.pipeline import PipelineConfig
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import CONTACT_HEIGHT, SELECTION_SETS, command_line, write_text  # noqa: E402
 
-SETS = {"validation": "validation", "dances": "training dances", "motions": "training motions",
-        "crossed": "crossed legs"}                # --set -> accuracy.py's split name
-
 
 def candidate(text):
     """A --fit value: JSON of FitSettings fields -> checked FitSettings."""
@@ -87,7 +84,7 @@ def main(argv=None):
                         help="FitSettings fields as JSON, e.g. '{\"race_iterations\": 4}'")
     parser.add_argument("--cmu", default=str(Path(__file__).resolve().parents[2] / "shared"
                                               / "data" / "cmu"))
-    parser.add_argument("--set", choices=SETS, default="validation",
+    parser.add_argument("--set", choices=SELECTION_SETS, default="validation",
                         help="the selection set (default: validation)")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args(argv)
@@ -99,7 +96,7 @@ def main(argv=None):
     reader = Retargeter(weights)
     runs = {index: [] for index in range(len(candidates))}
     fit_seconds = np.zeros(len(candidates))
-    for held_out in getattr(datasets, SELECTION_SETS[SETS[args.set]])(args.cmu):
+    for held_out in getattr(datasets, SELECTION_SETS[args.set][1])(args.cmu):
         sequence = held_out.build()
         reading = reader.skeleton(sequence["source_points"])
         for index, settings in enumerate(candidates):

@@ -920,14 +920,14 @@ def subsample(cloud, count, frame):
     return np.asarray(seeded_subset(cloud, count, frame), np.float64)
 
 
-def reading_weight(settings, reading, predicted):
+def reading_weight(settings, misread):
     """The reading's pull, per joint (J,) where ``settings.reading_width`` is set: SKR's
-    joints (J, 3) far from where the motion puts them (``predicted`` (J, 3)) are likely
+    joints far from where the motion puts them (``misread`` (J,), metres) are likely
     misread (a leg read on the wrong side, a body read turned), and their pull would drag
     the fit off the cloud; Geman-McClure in that distance. Otherwise the one weight."""
     if not settings.reading_width:
         return settings.reading_pull
-    ratio = np.linalg.norm(reading - predicted, axis=1) / settings.reading_width
+    ratio = misread / settings.reading_width
     return settings.reading_pull / (1.0 + ratio * ratio) ** 2
 
 
@@ -965,7 +965,8 @@ def fit_frame(model, settings, state, cloud, reading):
     # the reading's joints are then weighed against the held pose.
     moving = state.cost <= LOST_COST
     predicted = last + 0.5 * (last - before) if moving else last
-    pulls = ((reading_weight(settings, reading, predicted), reading),)
+    misread = np.linalg.norm(reading - predicted, axis=1)        # (J,) metres
+    pulls = ((reading_weight(settings, misread), reading),)
     if moving:
         pulls += ((settings.motion_pull, predicted),)
     race = settings._replace(iterations=min(settings.race_iterations, settings.iterations))
@@ -979,15 +980,15 @@ def fit_frame(model, settings, state, cloud, reading):
         if fresh[3] < cost:
             (local, root, joints, cost), reseeded = fresh, True
     if ((settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost)
-            or (settings.swap_legs_distance > 0 and moving and np.linalg.norm(
-                (reading - predicted)[_LOWER_LEGS >= 0], axis=1).max()
-                > settings.swap_legs_distance)):
+            or (settings.swap_legs_distance > 0 and moving
+                and misread[_LOWER_LEGS >= 0].max() > settings.swap_legs_distance)):
         # The better start explains the cloud poorly, or SKR's legs are not where the motion
         # puts them: SKR may have read the legs swapped (a leg across the other, the body
         # turned), and the track may have followed. The reading with its legs swapped is
         # fitted too; if it meets the cloud better, it is this frame's reading from here on.
         swapped = reading[_SWAPPED_LEGS]
-        swapped_pulls = ((reading_weight(settings, swapped, predicted), swapped),) + pulls[1:]
+        swapped_pulls = ((reading_weight(settings, np.linalg.norm(swapped - predicted, axis=1)),
+                          swapped),) + pulls[1:]
         other = fit_pose(model, rest, tpose_joints, cloud, grid,
                          local_from_joints(swapped, tpose_joints), swapped[0].copy(), race,
                          swapped_pulls)

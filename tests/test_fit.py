@@ -407,14 +407,13 @@ def test_reading_weight_falls_with_the_distance_from_the_motion():
     full pull where they agree, a quarter at ``reading_width``, almost none ten times as far;
     without a width, the one weight as before."""
     settings = fit.FitSettings(reading_pull=0.004, reading_width=0.1)
-    predicted = np.zeros((NUM_JOINTS, 3))
-    reading = predicted.copy()
-    reading[1, 0], reading[2, 1] = 0.1, 1.0
-    weight = fit.reading_weight(settings, reading, predicted)
+    misread = np.zeros(NUM_JOINTS)
+    misread[1], misread[2] = 0.1, 1.0
+    weight = fit.reading_weight(settings, misread)
     assert weight.shape == (NUM_JOINTS,)
     assert weight[0] == 0.004 and weight[1] == pytest.approx(0.001)
     assert weight[2] == pytest.approx(0.004 / 101 ** 2)
-    assert fit.reading_weight(settings._replace(reading_width=0.0), reading, predicted) == 0.004
+    assert fit.reading_weight(settings._replace(reading_width=0.0), misread) == 0.004
 
 
 def test_a_reading_far_from_the_motion_pulls_less_and_has_its_legs_tried_swapped(model,
