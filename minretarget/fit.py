@@ -46,7 +46,7 @@ import numpy as np
 from ._jit import kernel
 from .analytic import _analytic_frame
 from .conventions import JOINT_INDEX, NUM_JOINTS, PARENTS
-from .nearest import _nearest_both_ways_kernel, _nearest_kernel, build_grid
+from .nearest import _nearest_both_ways_kernel, _nearest_kernel, build_grid, nearest_both_ways
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_kernel,
                          _quaternion_to_matrix_one)
 from .sampling import seeded_subset
@@ -149,6 +149,9 @@ class FitSettings(NamedTuple):
     swap_legs_distance: float = 0.1  # metres: ... and so is a frame whose reading puts a lower
                                      # leg's joint this far from the motion's (0: not for
                                      # that)
+    stray_share: float = 0.0       # a frame whose cloud has more than this share of points
+                                   # farther than lost_leg_distance from the fitted model
+                                   # also tries each shin aimed at those points (0: never)
 
 
 def check_fit_settings(settings):
@@ -169,7 +172,7 @@ def check_fit_settings(settings):
                          f"{settings.settle_rounds!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "reading_width",
                  "motion_pull", "reseed_distance", "lost_leg_width", "lost_leg_distance",
-                 "swap_legs_cost", "swap_legs_distance"):
+                 "swap_legs_cost", "swap_legs_distance", "stray_share"):
         value = getattr(settings, name)
         positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
@@ -805,6 +808,55 @@ def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far):
     return shares
 
 
+def stray_points(model, rest, tpose_joints, local, root, cloud, cloud_grid, far):
+    """The cloud's points (P, 3) farther than ``far`` from every model point at the pose
+    ``local``, ``root`` -> (S, 3)."""
+    rotations, joints = forward(local, root, tpose_joints)
+    bones = model.bone_index
+    moved = (joints[bones] + np.einsum("qbxy,qby->qbx", rotations[bones],
+                                       rest[:, None, :] - tpose_joints[bones]))
+    posed = np.einsum("qb,qbx->qx", model.bone_weight, moved)
+    back = nearest_both_ways(cloud_grid, posed)[2]
+    return cloud_grid.points[back > far]
+
+
+def aim_shin(local, root, tpose_joints, side, strays):
+    """``local`` (J, 3, 3) with the lower leg ``side`` (0 left, 1 right) turned at its knee
+    so that its shin points at the mean of the ``strays`` (S, 3) within reach of the knee
+    (1.5 shins); None where fewer than 10 are."""
+    knee, ankle = (JOINT_INDEX[f"{('left', 'right')[side]}_{name}"] for name in ("knee", "ankle"))
+    rotations, joints = forward(local, root, tpose_joints)
+    shin = np.linalg.norm(tpose_joints[ankle] - tpose_joints[knee])
+    near = strays[np.linalg.norm(strays - joints[knee], axis=1) < 1.5 * shin]
+    if len(near) < 10:
+        return None
+    now = joints[ankle] - joints[knee]
+    goal = near.mean(0) - joints[knee]
+    turn = _rotation_between(now / np.linalg.norm(now), goal / max(np.linalg.norm(goal), 1e-9))
+    parent = rotations[_PARENTS[knee]]
+    aimed = np.array(local)
+    aimed[knee] = parent.T @ turn @ parent @ local[knee]
+    return aimed
+
+
+def _rotation_between(a, b):
+    """The smallest rotation (3, 3) taking unit vector a to unit vector b."""
+    axis, cosine = np.cross(a, b), float(a @ b)
+    sine = np.linalg.norm(axis)
+    if sine < 1e-9:
+        return np.eye(3) if cosine > 0 else (2 * np.outer(_any_normal(a), _any_normal(a))
+                                             - np.eye(3))
+    k = axis / sine
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sine * cross + (1 - cosine) * cross @ cross
+
+
+def _any_normal(a):
+    other = np.eye(3)[np.argmin(np.abs(a))]
+    n = np.cross(a, other)
+    return n / np.linalg.norm(n)
+
+
 # ----------------------------------------------------------------------------- one frame
 
 def surface_terms(posed, cloud, cloud_grid, settings):
@@ -994,6 +1046,21 @@ def fit_frame(model, settings, state, cloud, reading):
                          swapped_pulls)
         if other[3] < cost:
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
+    if settings.stray_share > 0:
+        strays = stray_points(model, rest, tpose_joints, local, root, cloud, grid,
+                              settings.lost_leg_distance)
+        if len(strays) > settings.stray_share * len(cloud):
+            # Cloud points the model leaves far away, near a knee: a lower leg the fit left
+            # lying on the other (a foot raised across the other knee, where SKR reads it
+            # down too). Each shin aimed at them is a start; the cloud decides.
+            for side in (0, 1):
+                aimed = aim_shin(local, root, tpose_joints, side, strays)
+                if aimed is None:
+                    continue
+                other = fit_pose(model, rest, tpose_joints, cloud, grid, aimed, root, race,
+                                 pulls)
+                if other[3] < cost:
+                    local, root, joints, cost = other
     if settings.lost_leg_width > 0 and (lost_legs(
             model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
             > settings.lost_leg_share):
