@@ -46,7 +46,7 @@ import numpy as np
 from ._jit import kernel
 from .analytic import _analytic_frame
 from .conventions import JOINT_INDEX, NUM_JOINTS, PARENTS
-from .nearest import _nearest_both_ways_kernel, _nearest_kernel, build_grid, nearest_both_ways
+from .nearest import _nearest_both_ways_kernel, _nearest_kernel, build_grid
 from .kinematics import (_matrix_to_quaternion_one, _quaternion_to_matrix_kernel,
                          _quaternion_to_matrix_one)
 from .sampling import seeded_subset
@@ -620,6 +620,43 @@ def _gauss_newton(iterations, rest, tpose, bone_index, bone_weight, normals, par
 
 
 @kernel
+def _skin_point(rest, tpose, bone_index, bone_weight, rotations, joints, q, out):
+    """Model point q posed by LBS (no normals, no levers: ``_pose_points_kernel`` has them)
+    into ``out`` (3,)."""
+    for a in range(3):
+        out[a] = 0.0
+    for b in range(bone_index.shape[1]):
+        w = bone_weight[q, b]
+        if w == 0.0:
+            continue
+        k = bone_index[q, b]
+        for a in range(3):
+            moved = joints[k, a]
+            for c in range(3):
+                moved += rotations[k, a, c] * (rest[q, c] - tpose[k, c])
+            out[a] += w * moved
+
+
+@kernel
+def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, cloud,
+                         cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts, far,
+                         stray):
+    """``stray_points`` on arrays: stray (P,) bool gets, per cloud point (the grid's order),
+    whether every model point, posed by LBS, lies farther than ``far``."""
+    posed = np.empty((rest.shape[0], 3))
+    for q in range(rest.shape[0]):
+        _skin_point(rest, tpose, bone_index, bone_weight, rotations, joints, q, posed[q])
+    distances, indices = np.empty(len(posed)), np.empty(len(posed), np.int64)
+    back_distances, back_indices = np.empty(len(cloud)), np.empty(len(cloud), np.int64)
+    # Only the cloud's side is wanted: a stride past the last query skips the model's searches
+    _nearest_both_ways_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                              cloud_starts, posed, len(posed) + 1, distances, indices,
+                              back_distances, back_indices)
+    for n in range(len(cloud)):
+        stray[n] = back_distances[n] > far
+
+
+@kernel
 def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, lower_legs,
                       cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
                       far, shares):
@@ -642,18 +679,7 @@ def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, l
     for q in range(rest.shape[0]):
         if leg[q] < 0:
             continue
-        for a in range(3):
-            points[count, a] = 0.0
-        for b in range(bone_index.shape[1]):
-            w = bone_weight[q, b]
-            if w == 0.0:
-                continue
-            k = bone_index[q, b]
-            for a in range(3):
-                moved = joints[k, a]
-                for c in range(3):
-                    moved += rotations[k, a, c] * (rest[q, c] - tpose[k, c])
-                points[count, a] += w * moved
+        _skin_point(rest, tpose, bone_index, bone_weight, rotations, joints, q, points[count])
         sides[count] = leg[q]
         count += 1
     distances, nearest = np.empty(count), np.empty(count, np.int64)
@@ -808,16 +834,18 @@ def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far):
     return shares
 
 
-def stray_points(model, rest, tpose_joints, local, root, cloud, cloud_grid, far):
-    """The cloud's points (P, 3) farther than ``far`` from every model point at the pose
-    ``local``, ``root`` -> (S, 3)."""
+def stray_points(model, rest, tpose_joints, local, root, cloud_grid, far):
+    """The cloud's points (``cloud_grid``'s, ``nearest.build_grid``) farther than ``far``
+    metres from every model point at the pose ``local`` (J, 3, 3), ``root`` (3,) of the
+    shaped model (``shaped``) -> (S, 3): what the model leaves unexplained (a raised foot
+    the fit left hanging)."""
     rotations, joints = forward(local, root, tpose_joints)
-    bones = model.bone_index
-    moved = (joints[bones] + np.einsum("qbxy,qby->qbx", rotations[bones],
-                                       rest[:, None, :] - tpose_joints[bones]))
-    posed = np.einsum("qb,qbx->qx", model.bone_weight, moved)
-    back = nearest_both_ways(cloud_grid, posed)[2]
-    return cloud_grid.points[back > far]
+    stray = np.empty(len(cloud_grid.points), np.bool_)
+    _stray_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, rotations,
+                         joints, cloud_grid.points, cloud_grid.origin, cloud_grid.cell,
+                         cloud_grid.dims, cloud_grid.order, cloud_grid.starts, float(far),
+                         stray)
+    return cloud_grid.points[stray]
 
 
 def aim_shin(local, root, tpose_joints, side, strays):
@@ -1047,7 +1075,7 @@ def fit_frame(model, settings, state, cloud, reading):
         if other[3] < cost:
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
     if settings.stray_share > 0:
-        strays = stray_points(model, rest, tpose_joints, local, root, cloud, grid,
+        strays = stray_points(model, rest, tpose_joints, local, root, grid,
                               settings.lost_leg_distance)
         if len(strays) > settings.stray_share * len(cloud):
             # Cloud points the model leaves far away, near a knee: a lower leg the fit left

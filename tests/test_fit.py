@@ -361,6 +361,77 @@ def test_a_shin_in_empty_space_is_reached_for(model):
     assert miss[fit.FitSettings().lost_leg_width] < 0.5 * miss[0.0]
 
 
+def test_stray_points_are_the_cloud_points_far_from_the_model(model):
+    """Against brute force: the cloud points farther than ``far`` from every posed model
+    point (``pose_model``'s), on a cloud of the model in another pose."""
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=11, turn=0.5)
+    *_, other_rotations, other_joints = posed_state(model, seed=12, turn=0.5)
+    cloud = fit.pose_model(model, rest, tpose, other_rotations, other_joints).points[::2]
+    posed = fit.pose_model(model, rest, tpose, rotations, joints).points
+    nearest = np.sqrt(((cloud[:, None] - posed[None]) ** 2).sum(-1)).min(1)
+    for far in (0.02, 0.08):
+        got = fit.stray_points(model, rest, tpose, local, root, build_grid(cloud), far)
+        want = cloud[nearest > far]
+        assert 0 < len(want) < len(cloud)
+        np.testing.assert_allclose(got[np.lexsort(got.T)], want[np.lexsort(want.T)],
+                                   atol=1e-12)
+
+
+@pytest.mark.parametrize("b", [[0.0, 0.6, 0.8], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0],
+                               [-1.0, 1e-12, 0.0]])
+def test_rotation_between_takes_one_direction_to_the_other(b):
+    a = np.array([1.0, 0.0, 0.0])
+    b = np.asarray(b) / np.linalg.norm(b)
+    turn = fit._rotation_between(a, b)
+    np.testing.assert_allclose(turn @ turn.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(turn) == pytest.approx(1.0)
+    np.testing.assert_allclose(turn @ a, b, atol=1e-9)
+
+
+def test_aim_shin_points_the_shin_at_the_strays_and_moves_nothing_above_the_knee(model):
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=5, turn=0.3)
+    knee, ankle = fit.JOINT_INDEX["left_knee"], fit.JOINT_INDEX["left_ankle"]
+    goal = joints[knee] + np.array([0.1, 0.0, 0.3])
+    strays = goal + np.random.default_rng(0).normal(scale=0.02, size=(40, 3))
+    aimed = fit.aim_shin(local, root, tpose, 0, strays)
+    _, moved = fit.forward(aimed, root, tpose)
+    shin = moved[ankle] - moved[knee]
+    target = strays.mean(0) - joints[knee]
+    np.testing.assert_allclose(shin / np.linalg.norm(shin), target / np.linalg.norm(target),
+                               atol=1e-9)
+    below = [fit.JOINT_INDEX[name] for name in ("left_ankle", "left_foot")]
+    others = [j for j in range(NUM_JOINTS) if j not in below]
+    np.testing.assert_allclose(moved[others], joints[others], atol=1e-12)
+    assert fit.aim_shin(local, root, tpose, 0, strays + 2.0) is None   # out of reach
+    assert fit.aim_shin(local, root, tpose, 0, strays[:9]) is None     # too few
+
+
+def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model):
+    """The shin bent up behind (a foot raised), the track's hanging down: the raised foot's
+    points lie past the robust width and pull nothing, and SKR reads the leg down as well.
+    With ``stray_share`` the shin aimed at them is a start and wins; without, the ankle stays
+    where it was (the lost-leg steps off in both, to see this start alone). The cloud is the
+    model's own surface, so its costs are a quarter of a real cloud's: the pulls are too."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    knee, ankle = fit.JOINT_INDEX["left_knee"], fit.JOINT_INDEX["left_ankle"]
+    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    raised = start.copy()
+    raised[knee] = turned([1, 0, 0], -1.5)                   # the foot up behind
+    rotations, joints = fit.forward(raised, root, tpose)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    _, held = fit.forward(start, root, tpose)
+    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
+    miss = {}
+    for share in (0.0, 0.03):
+        settings = fit.FitSettings(lost_leg_width=0.0, stray_share=share,
+                                   reading_pull=0.00125, motion_pull=0.00125)
+        _, found, _ = fit.fit_frame(model, settings, state, cloud, held)
+        miss[share] = np.linalg.norm(found[ankle] - joints[ankle])
+    assert miss[0.0] > 0.3
+    assert miss[0.03] < 0.05
+
+
 def legs_apart_scene(model):
     """The mean body with its legs apart (one forward, one back, a knee bent) and its own
     surface as the cloud -> shape, tpose, root, true local rotations, joints, cloud."""
