@@ -70,6 +70,11 @@ _LOWER_LEGS = np.full(NUM_JOINTS, -1, np.int64)
 for _side, _name in enumerate(("left", "right")):
     for _joint in ("knee", "ankle", "foot"):
         _LOWER_LEGS[JOINT_INDEX[f"{_name}_{_joint}"]] = _side
+# The joints whose bones are the legs' (thigh, shin, foot, toes): ``stray_points``.
+_LEGS = np.zeros(NUM_JOINTS, np.bool_)
+for _name in ("left", "right"):
+    for _joint in ("hip", "knee", "ankle", "foot"):
+        _LEGS[JOINT_INDEX[f"{_name}_{_joint}"]] = True
 # Joint order with the lower legs' joints (knee, ankle, foot) of the two sides exchanged:
 # ``joints[_SWAPPED_LEGS]`` puts each leg where the other was, the hips where they are.
 _SWAPPED_LEGS = np.arange(NUM_JOINTS)
@@ -638,11 +643,12 @@ def _skin_point(rest, tpose, bone_index, bone_weight, rotations, joints, q, out)
 
 
 @kernel
-def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, cloud,
-                         cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts, far,
-                         stray):
+def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, legs,
+                         cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
+                         far, stray):
     """``stray_points`` on arrays: stray (P,) bool gets, per cloud point (the grid's order),
-    whether every model point, posed by LBS, lies farther than ``far``."""
+    whether every model point, posed by LBS, lies farther than ``far`` and the nearest is a
+    leg's (``legs`` (J,) bool: the joints whose bones are the legs')."""
     posed = np.empty((rest.shape[0], 3))
     for q in range(rest.shape[0]):
         _skin_point(rest, tpose, bone_index, bone_weight, rotations, joints, q, posed[q])
@@ -653,7 +659,14 @@ def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints
                               cloud_starts, posed, len(posed) + 1, distances, indices,
                               back_distances, back_indices)
     for n in range(len(cloud)):
-        stray[n] = back_distances[n] > far
+        stray[n] = False
+        if back_distances[n] > far:
+            q = back_indices[n]
+            heaviest, weight = 0, -1.0
+            for b in range(bone_index.shape[1]):
+                if bone_weight[q, b] > weight:
+                    heaviest, weight = bone_index[q, b], bone_weight[q, b]
+            stray[n] = legs[heaviest]
 
 
 @kernel
@@ -837,12 +850,13 @@ def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far):
 def stray_points(model, rest, tpose_joints, local, root, cloud_grid, far):
     """The cloud's points (``cloud_grid``'s, ``nearest.build_grid``) farther than ``far``
     metres from every model point at the pose ``local`` (J, 3, 3), ``root`` (3,) of the
-    shaped model (``shaped``) -> (S, 3): what the model leaves unexplained (a raised foot
-    the fit left hanging)."""
+    shaped model (``shaped``), and nearest to a leg's (a point whose heaviest bone is a hip's,
+    knee's, ankle's or foot's) -> (S, 3): what the model's legs leave unexplained (a raised
+    foot the fit left hanging; a lost hand's points, nearest the arm, are not these)."""
     rotations, joints = forward(local, root, tpose_joints)
     stray = np.empty(len(cloud_grid.points), np.bool_)
     _stray_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, rotations,
-                         joints, cloud_grid.points, cloud_grid.origin, cloud_grid.cell,
+                         joints, _LEGS, cloud_grid.points, cloud_grid.origin, cloud_grid.cell,
                          cloud_grid.dims, cloud_grid.order, cloud_grid.starts, float(far),
                          stray)
     return cloud_grid.points[stray]
