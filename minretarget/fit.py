@@ -154,9 +154,10 @@ class FitSettings(NamedTuple):
     swap_legs_distance: float = 0.1  # metres: ... and so is a frame whose reading puts a lower
                                      # leg's joint this far from the motion's (0: not for
                                      # that)
-    stray_share: float = 0.0       # a frame whose cloud has more than this share of points
-                                   # farther than lost_leg_distance from the fitted model
-                                   # also tries each shin aimed at those points (0: never)
+    stray_share: float = 0.0       # a frame the track's start won, whose cloud has more than
+                                   # this share of points farther than lost_leg_distance from
+                                   # the fitted model's legs, also tries each shin aimed at
+                                   # those points (0: never)
 
 
 def check_fit_settings(settings):
@@ -1088,13 +1089,15 @@ def fit_frame(model, settings, state, cloud, reading):
                          swapped_pulls)
         if other[3] < cost:
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
-    if settings.stray_share > 0:
+    if settings.stray_share > 0 and not reseeded:
         strays = stray_points(model, rest, tpose_joints, local, root, grid,
                               settings.lost_leg_distance)
         if len(strays) > settings.stray_share * len(cloud):
-            # Cloud points the model leaves far away, near a knee: a lower leg the fit left
-            # lying on the other (a foot raised across the other knee, where SKR reads it
-            # down too). Each shin aimed at them is a start; the cloud decides.
+            # Cloud points the model's legs leave far away while the track holds: a lower leg
+            # the fit left lying on the other (a foot raised across the other knee, where SKR
+            # reads it down too). Each shin aimed at them is a start; the cloud decides. Not
+            # on a frame a reading's start won: the track was lost there, and its strays are
+            # anything the new start has not yet settled.
             for side in (0, 1):
                 aimed = aim_shin(local, root, tpose_joints, side, strays)
                 if aimed is None:

@@ -412,12 +412,13 @@ def test_aim_shin_points_the_shin_at_the_strays_and_moves_nothing_above_the_knee
     assert fit.aim_shin(local, root, tpose, 0, strays[:9]) is None     # too few
 
 
-def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model):
+def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model, monkeypatch):
     """The shin bent up behind (a foot raised), the track's hanging down: the raised foot's
     points lie past the robust width and pull nothing, and SKR reads the leg down as well.
     With ``stray_share`` the shin aimed at them is a start and wins; without, the ankle stays
     where it was (the lost-leg steps off in both, to see this start alone). The cloud is the
-    model's own surface, so its costs are a quarter of a real cloud's: the pulls are too."""
+    model's own surface, so its costs are a quarter of a real cloud's: the pulls are too. A
+    frame the reading's start won is not tried (the track was lost there)."""
     shape = np.zeros(len(model.points_basis))
     rest, tpose = fit.shaped(model, shape)
     knee, ankle = fit.JOINT_INDEX["left_knee"], fit.JOINT_INDEX["left_ankle"]
@@ -431,11 +432,21 @@ def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model):
     miss = {}
     for share in (0.0, 0.03):
         settings = fit.FitSettings(lost_leg_width=0.0, stray_share=share,
-                                   reading_pull=0.00125, motion_pull=0.00125)
+                                   reading_pull=0.00125, motion_pull=0.00125,
+                                   reseed_distance=1.0)     # the track's start alone
         _, found, _ = fit.fit_frame(model, settings, state, cloud, held)
         miss[share] = np.linalg.norm(found[ankle] - joints[ankle])
     assert miss[0.0] > 0.3
     assert miss[0.03] < 0.05
+    calls = []
+    aim_shin = fit.aim_shin
+    monkeypatch.setattr(fit, "aim_shin", lambda *a: calls.append(1) or aim_shin(*a))
+    fit.fit_frame(model, settings, state, cloud, held)
+    assert calls == [1, 1]                                  # both shins tried
+    calls.clear()
+    lost = state._replace(root=root + [0.5, 0.0, 0.0])        # the track half a metre off
+    *_, won = fit.fit_frame(model, settings._replace(reseed_distance=0.0), lost, cloud, held)
+    assert won and calls == []
 
 
 def legs_apart_scene(model):
