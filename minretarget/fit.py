@@ -30,9 +30,12 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    leg's joint far from the motion's prediction (``swap_legs_distance``; only after a frame
    with the body), the reading with its lower legs swapped is a third start (SKR reads some
    crossed legs swapped). When the
-   better one leaves a shin or foot in empty space (``lost_legs``: a kick neither start
-   followed), its next steps run at a wider robust width without the reading's pull, to
-   reach the leg's points again. A cloud where the body is not found (``LOST_COST``) is
+   track's start won but leaves cloud points far from the model's legs (``stray_points``,
+   ``stray_share``: a foot raised across the other knee, the fit's shin left lying on the
+   other leg), each shin turned at its knee to point at them (``aim_shin``) is a start too.
+   When the better one leaves a shin or foot in empty space (``lost_legs``: a kick neither
+   start followed), its next steps run at a wider robust width without the reading's pull,
+   to reach the leg's points again. A cloud where the body is not found (``LOST_COST``) is
    skipped: the last pose is held through it.
 
 Lengths are metres; the solver works in float64.
