@@ -30,7 +30,7 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    leg's joint far from the motion's prediction (``swap_legs_distance``; only after a frame
    with the body), the reading with its lower legs swapped is a third start (SKR reads some
    crossed legs swapped). When the
-   track's start won but leaves cloud points far from the model's legs (``stray_points``,
+   better one leaves cloud points far from the model's legs (``stray_points``,
    ``stray_share``: a foot raised across the other knee, the fit's shin left lying on the
    other leg), each shin turned at its knee to point at them (``aim_shin``) is a start too.
    When the better one leaves a shin or foot in empty space (``lost_legs``: a kick neither
@@ -157,10 +157,10 @@ class FitSettings(NamedTuple):
     swap_legs_distance: float = 0.1  # metres: ... and so is a frame whose reading puts a lower
                                      # leg's joint this far from the motion's (0: not for
                                      # that)
-    stray_share: float = 0.0       # a frame the track's start won, whose cloud has more than
-                                   # this share of points farther than lost_leg_distance from
-                                   # the fitted model's legs, also tries each shin aimed at
-                                   # those points (0: never)
+    stray_share: float = 0.03      # a frame whose cloud has more than this share of points
+                                   # farther than lost_leg_distance from the fitted model,
+                                   # nearest its legs, also tries each shin aimed at those
+                                   # points (0: never)
 
 
 def check_fit_settings(settings):
@@ -1092,15 +1092,13 @@ def fit_frame(model, settings, state, cloud, reading):
                          swapped_pulls)
         if other[3] < cost:
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
-    if settings.stray_share > 0 and not reseeded:
+    if settings.stray_share > 0:
         strays = stray_points(model, rest, tpose_joints, local, root, grid,
                               settings.lost_leg_distance)
         if len(strays) > settings.stray_share * len(cloud):
-            # Cloud points the model's legs leave far away while the track holds: a lower leg
-            # the fit left lying on the other (a foot raised across the other knee, where SKR
-            # reads it down too). Each shin aimed at them is a start; the cloud decides. Not
-            # on a frame a reading's start won: the track was lost there, and its strays are
-            # anything the new start has not yet settled.
+            # Cloud points the model's legs leave far away: a lower leg the fit left lying on
+            # the other (a foot raised across the other knee, where SKR reads it down too).
+            # Each shin aimed at them is a start; the cloud decides.
             for side in (0, 1):
                 aimed = aim_shin(local, root, tpose_joints, side, strays)
                 if aimed is None:
