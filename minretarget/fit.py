@@ -629,6 +629,16 @@ def _gauss_newton(iterations, rest, tpose, bone_index, bone_weight, normals, par
 
 
 @kernel
+def _heaviest_bone(bone_index, bone_weight, q):
+    """The bone (joint index) that moves model point q most (the first of equals)."""
+    heaviest, weight = 0, -1.0
+    for b in range(bone_index.shape[1]):
+        if bone_weight[q, b] > weight:
+            heaviest, weight = bone_index[q, b], bone_weight[q, b]
+    return heaviest
+
+
+@kernel
 def _skin_point(rest, tpose, bone_index, bone_weight, rotations, joints, q, out):
     """Model point q posed by LBS (no normals, no levers: ``_pose_points_kernel`` has them)
     into ``out`` (3,)."""
@@ -665,12 +675,7 @@ def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints
     for n in range(len(cloud)):
         stray[n] = False
         if back_distances[n] > far:
-            q = back_indices[n]
-            heaviest, weight = 0, -1.0
-            for b in range(bone_index.shape[1]):
-                if bone_weight[q, b] > weight:
-                    heaviest, weight = bone_index[q, b], bone_weight[q, b]
-            stray[n] = legs[heaviest]
+            stray[n] = legs[_heaviest_bone(bone_index, bone_weight, back_indices[n])]
 
 
 @kernel
@@ -683,11 +688,7 @@ def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, l
     leg = np.empty(rest.shape[0], np.int64)
     count = 0
     for q in range(rest.shape[0]):
-        heaviest, weight = 0, -1.0
-        for b in range(bone_index.shape[1]):
-            if bone_weight[q, b] > weight:
-                heaviest, weight = bone_index[q, b], bone_weight[q, b]
-        leg[q] = lower_legs[heaviest]
+        leg[q] = lower_legs[_heaviest_bone(bone_index, bone_weight, q)]
         if leg[q] >= 0:
             count += 1
     points = np.empty((count, 3))
