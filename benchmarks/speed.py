@@ -36,6 +36,7 @@ Ratios > 1 mean minretarget is faster. Without --weights it uses the shipped wei
 Needs the ``bench`` extra (torch, onnxruntime, onnxscript, threadpoolctl).
 """
 import argparse
+import importlib.util
 import json
 import logging
 import os
@@ -523,6 +524,10 @@ def neighbour_times(weights):
 
 # ----------------------------------------------------------------------------- main
 
+# The modules the engines' comparison imports (setup.py's "bench" extra).
+COMPARED_ENGINES = ("torch", "onnxruntime", "onnx", "onnxscript")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="the default setting only")
@@ -545,6 +550,11 @@ def main():
         if args.json:
             write_text(args.json, json.dumps(results, indent=2))
         return
+    # Checked now, not after minutes of timing: the engines compared with (the bench extra)
+    missing = [name for name in COMPARED_ENGINES if importlib.util.find_spec(name) is None]
+    if missing:
+        parser.error(f"the engines compared with are not installed ({', '.join(missing)}): "
+                     f"pip install -e \".[bench]\" (or run --neighbour, which needs none)")
     workers = args.workers
     blas_threads = 1 if workers > 1 else args.threads
     import torch
