@@ -1,7 +1,7 @@
 """Accuracy of the runtime on the test benchmark (../shared/DESIGN.md, "Accuracy protocol").
 
     python benchmarks/accuracy.py (--validation | --dances | --motions | --crossed
-                                   | --report [--quick]) [--rows ROW ...]
+                                   | --more-dances | --report [--quick]) [--rows ROW ...]
                                   [--weights FILE] [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
                                   [--compare OTHER.json]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]
@@ -86,6 +86,7 @@ the motion the validation subjects lack (the networks trained on it, on other bo
 --motions: up to four trials of each other motion category of the training split, likewise.
 --crossed: the --dances trials (240 frames at most) with a leg crossed over the other every
 second or so (``datasets.crossings_over_time``): legs that cross, which the others barely show.
+--more-dances: every other dance, salsa and martial-arts trial of the training split, likewise.
 """
 import argparse
 import functools
@@ -609,7 +610,8 @@ def select_sequences(paths, quick):
 SELECTION_SETS = {"validation": ("validation", "validation_sequences"),
                   "dances": ("training dances", "dance_sequences"),
                   "motions": ("training motions", "motion_sequences"),
-                  "crossed": ("crossed legs", "crossed_sequences")}
+                  "crossed": ("crossed legs", "crossed_sequences"),
+                  "more_dances": ("more training dances", "more_dance_sequences")}
 
 
 def main(argv=None):
@@ -636,6 +638,11 @@ def main(argv=None):
                         help="score the dance trials with a leg crossed over the other every "
                              "second or so on held-out validation bodies instead "
                              "(training.data.datasets.crossed_sequences): legs that cross")
+    which.add_argument("--more-dances", action="store_true",
+                        help="score every other dance, salsa and martial-arts trial of the "
+                             "training split (240 frames at most) on held-out validation bodies "
+                             "instead (training.data.datasets.more_dance_sequences: 39 trials, "
+                             "8,267 frames): the widest dance motion the training split holds")
     parser.add_argument("--rows", nargs="+", choices=ROWS + LEASH_ROWS + FIT_ROWS,
                         default=list(ROWS),
                         metavar="ROW", help="the rows to compute, each quoted (default: all "

@@ -5,7 +5,8 @@
 Each ``--fit`` is a JSON object of ``minretarget.fit.FitSettings`` fields (default: one
 candidate, ``{}``, the shipped settings). Every sequence of a selection set (``--set``:
 validation, the default, ``training.data.datasets.validation_sequences``; or dances, motions,
-crossed: ``benchmarks/accuracy.py``'s --dances, --motions, --crossed; never the test split)
+crossed, more_dances: ``benchmarks/accuracy.py``'s --dances, --motions, --crossed,
+--more-dances; never the test split)
 is read by the shipped SKR and refiner (``Retargeter.skeleton``), tracked by ``fit.track`` with
 each candidate, and the fitted skeletons retargeted by ``Retargeter.step_skeleton`` with the
 shipped weights, smoothing and denoiser off. Per candidate: the source skeleton's error

@@ -352,6 +352,23 @@ def test_the_motion_set_is_every_other_training_category_on_validation_bodies():
 
 
 @needs_walk
+def test_the_more_dances_set_is_every_other_training_dance_on_validation_bodies():
+    from training.data.cmu import list_trials
+    from training.data.datasets import DANCE_TRIALS, VALIDATION_SUBJECTS, more_dance_sequences
+    held_out = more_dance_sequences(CMU_DIR)
+    names = {sequence.trial.name for sequence in held_out}
+    assert (len(held_out), sum(sequence.frames for sequence in held_out)) == (39, 8267)
+    assert [sequence.build.args[1] for sequence in held_out] == list(range(len(held_out)))
+    assert max(sequence.frames for sequence in held_out) == 240
+    # every training dance trial is in exactly one of the two dance sets
+    dances = {t.name for t in list_trials(CMU_DIR) if t.split == "train"
+              and t.subject not in VALIDATION_SUBJECTS and t.category in ("dance", "salsa",
+                                                                          "martial")}
+    assert names | set(DANCE_TRIALS) == dances and not names & set(DANCE_TRIALS)
+    assert not names & BROKEN_TRIALS and len(names) == len(held_out)
+
+
+@needs_walk
 def test_real_walk_maps_exactly_and_walks_forward():
     motion = load_motion(WALK)
     assert motion.category == "walk" and motion.source_fps == 120
