@@ -32,11 +32,13 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    crossed legs swapped). When the
    better one leaves cloud points far from the model's legs (``stray_points``,
    ``stray_share``: a foot raised across the other knee, the fit's shin left lying on the
-   other leg), each shin turned at its knee to point at them (``aim_shin``) is a start too.
-   When the better one leaves a shin or foot in empty space (``lost_legs``: a kick neither
-   start followed), its next steps run at a wider robust width without the reading's pull,
-   to reach the leg's points again. A cloud where the body is not found (``LOST_COST``) is
-   skipped: the last pose is held through it.
+   other leg; a thigh raised in a pirouette), each thigh turned at its hip and each shin at
+   its knee to point at them (``aim_bone``) is a start too; each that beats the better one
+   goes on beside it, and the lowest cost once all have settled wins (a short race can favour
+   a start that settles worse). When a start going on leaves a shin or foot in empty space
+   (``lost_legs``: a kick neither start followed), its next steps run at a wider robust width
+   without the reading's pull, to reach the leg's points again. A cloud where the body is not
+   found (``LOST_COST``) is skipped: the last pose is held through it.
 
 Lengths are metres; the solver works in float64.
 """
@@ -78,6 +80,12 @@ _LEGS = np.zeros(NUM_JOINTS, np.bool_)
 for _name in ("left", "right"):
     for _joint in ("hip", "knee", "ankle", "foot"):
         _LEGS[JOINT_INDEX[f"{_name}_{_joint}"]] = True
+# The joints the stray points' starts turn (``aim_bone``): each thigh at its hip, each shin
+# at its knee; and each one's child, the bone's other end.
+_AIMED = tuple(JOINT_INDEX[f"{name}_{joint}"] for name in ("left", "right")
+               for joint in ("hip", "knee"))
+_CHILD = {JOINT_INDEX[f"{name}_{joint}"]: JOINT_INDEX[f"{name}_{child}"]
+          for name in ("left", "right") for joint, child in (("hip", "knee"), ("knee", "ankle"))}
 # Joint order with the lower legs' joints (knee, ankle, foot) of the two sides exchanged:
 # ``joints[_SWAPPED_LEGS]`` puts each leg where the other was, the hips where they are.
 _SWAPPED_LEGS = np.arange(NUM_JOINTS)
@@ -159,8 +167,8 @@ class FitSettings(NamedTuple):
                                      # that)
     stray_share: float = 0.03      # a frame whose cloud has more than this share of points
                                    # farther than lost_leg_distance from the fitted model,
-                                   # nearest its legs, also tries each shin aimed at those
-                                   # points (0: never)
+                                   # nearest its legs, also tries each thigh and shin aimed
+                                   # at those points (0: never)
 
 
 def check_fit_settings(settings):
@@ -867,22 +875,22 @@ def stray_points(model, rest, tpose_joints, local, root, cloud_grid, far):
     return cloud_grid.points[stray]
 
 
-def aim_shin(local, root, tpose_joints, side, strays):
-    """``local`` (J, 3, 3) with the lower leg ``side`` (0 left, 1 right) turned at its knee
-    so that its shin points at the mean of the ``strays`` (S, 3) within reach of the knee
-    (1.5 shins); None where fewer than 10 are."""
-    knee, ankle = (JOINT_INDEX[f"{('left', 'right')[side]}_{name}"] for name in ("knee", "ankle"))
+def aim_bone(local, root, tpose_joints, joint, strays):
+    """``local`` (J, 3, 3) with ``joint`` (a hip or a knee: its thigh or shin) turned so that
+    its bone points at the mean of the ``strays`` (S, 3) within reach of the joint (1.5 bones);
+    None where fewer than 10 are. What hangs below turns with it."""
+    child = _CHILD[joint]
     rotations, joints = forward(local, root, tpose_joints)
-    shin = np.linalg.norm(tpose_joints[ankle] - tpose_joints[knee])
-    near = strays[np.linalg.norm(strays - joints[knee], axis=1) < 1.5 * shin]
+    bone = np.linalg.norm(tpose_joints[child] - tpose_joints[joint])
+    near = strays[np.linalg.norm(strays - joints[joint], axis=1) < 1.5 * bone]
     if len(near) < 10:
         return None
-    now = joints[ankle] - joints[knee]
-    goal = near.mean(0) - joints[knee]
+    now = joints[child] - joints[joint]
+    goal = near.mean(0) - joints[joint]
     turn = _rotation_between(now / np.linalg.norm(now), goal / max(np.linalg.norm(goal), 1e-9))
-    parent = rotations[_PARENTS[knee]]
+    parent = rotations[_PARENTS[joint]]
     aimed = np.array(local)
-    aimed[knee] = parent.T @ turn @ parent @ local[knee]
+    aimed[joint] = parent.T @ turn @ parent @ local[joint]
     return aimed
 
 
@@ -1051,6 +1059,26 @@ def start_fit(model, settings, cloud, reading):
     return state, joints
 
 
+def _settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local, root, joints,
+            cost):
+    """A start that won its race, fitted on: a lost lower leg looked for, then the steps the
+    race left (``fit_frame``) -> local, root, joints, cost."""
+    if settings.lost_leg_width > 0 and (lost_legs(
+            model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
+            > settings.lost_leg_share):
+        # A shin in empty space (a kick neither start followed): the robust terms no longer
+        # reach its cloud, and SKR's reading, as lost there, holds it. Steps at a wider width
+        # without the reading's pull reach out for it.
+        local, root, joints, cost = fit_pose(
+            model, rest, tpose_joints, cloud, grid, local, root,
+            race._replace(robust_width=settings.lost_leg_width), pulls[1:])
+    if settings.iterations > race.iterations:          # the better start goes on
+        local, root, joints, cost = fit_pose(
+            model, rest, tpose_joints, cloud, grid, local, root,
+            settings._replace(iterations=settings.iterations - race.iterations), pulls)
+    return local, root, joints, cost
+
+
 def fit_frame(model, settings, state, cloud, reading):
     """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
     from SKR's reading (or from it with its legs swapped) won."""
@@ -1093,34 +1121,27 @@ def fit_frame(model, settings, state, cloud, reading):
                          swapped_pulls)
         if other[3] < cost:
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
+    starts = [(local, root, joints, cost)]
     if settings.stray_share > 0:
         strays = stray_points(model, rest, tpose_joints, local, root, grid,
                               settings.lost_leg_distance)
         if len(strays) > settings.stray_share * len(cloud):
             # Cloud points the model's legs leave far away: a lower leg the fit left lying on
             # the other (a foot raised across the other knee, where SKR reads it down too).
-            # Each shin aimed at them is a start; the cloud decides.
-            for side in (0, 1):
-                aimed = aim_shin(local, root, tpose_joints, side, strays)
-                if aimed is None:
-                    continue
-                other = fit_pose(model, rest, tpose_joints, cloud, grid, aimed, root, race,
-                                 pulls)
-                if other[3] < cost:
-                    local, root, joints, cost = other
-    if settings.lost_leg_width > 0 and (lost_legs(
-            model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
-            > settings.lost_leg_share):
-        # A shin in empty space (a kick neither start followed): the robust terms no longer
-        # reach its cloud, and SKR's reading, as lost there, holds it. Steps at a wider width
-        # without the reading's pull reach out for it.
-        local, root, joints, cost = fit_pose(
-            model, rest, tpose_joints, cloud, grid, local, root,
-            race._replace(robust_width=settings.lost_leg_width), pulls[1:])
-    if settings.iterations > race.iterations:          # the better start goes on
-        local, root, joints, cost = fit_pose(
-            model, rest, tpose_joints, cloud, grid, local, root,
-            settings._replace(iterations=settings.iterations - race.iterations), pulls)
+            # Each shin aimed at them is a start; the better one that wins the race goes on
+            # beside the start it beat, and the cloud decides once both have settled (a thigh
+            # raised in a pirouette leaves such points too, and an aimed shin can win a short
+            # race there and settle worse).
+            for joint in _AIMED:
+                aimed = aim_bone(local, root, tpose_joints, joint, strays)
+                if aimed is not None:
+                    other = fit_pose(model, rest, tpose_joints, cloud, grid, aimed, root, race,
+                                     pulls)
+                    if other[3] < cost:
+                        starts.append(other)
+    settled = [_settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, *start)
+               for start in starts]
+    local, root, joints, cost = min(settled, key=lambda fitted: fitted[3])
     if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
         return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration

@@ -396,22 +396,32 @@ def test_rotation_between_takes_one_direction_to_the_other(b):
     np.testing.assert_allclose(turn @ a, b, atol=1e-9)
 
 
-def test_aim_shin_points_the_shin_at_the_strays_and_moves_nothing_above_the_knee(model):
+@pytest.mark.parametrize("joint, moved_below", [
+    ("left_knee", ("left_ankle", "left_foot")),
+    ("right_hip", ("right_knee", "right_ankle", "right_foot"))])
+def test_aim_bone_points_the_bone_at_the_strays_and_moves_nothing_else(model, joint,
+                                                                        moved_below):
     _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=5, turn=0.3)
-    knee, ankle = fit.JOINT_INDEX["left_knee"], fit.JOINT_INDEX["left_ankle"]
-    goal = joints[knee] + np.array([0.1, 0.0, 0.3])
+    start, end = fit.JOINT_INDEX[joint], fit.JOINT_INDEX[moved_below[0]]
+    goal = joints[start] + np.array([0.1, 0.0, 0.3])
     strays = goal + np.random.default_rng(0).normal(scale=0.02, size=(40, 3))
-    aimed = fit.aim_shin(local, root, tpose, 0, strays)
+    aimed = fit.aim_bone(local, root, tpose, start, strays)
     _, moved = fit.forward(aimed, root, tpose)
-    shin = moved[ankle] - moved[knee]
-    target = strays.mean(0) - joints[knee]
-    np.testing.assert_allclose(shin / np.linalg.norm(shin), target / np.linalg.norm(target),
+    bone = moved[end] - moved[start]
+    target = strays.mean(0) - joints[start]
+    np.testing.assert_allclose(bone / np.linalg.norm(bone), target / np.linalg.norm(target),
                                atol=1e-9)
-    below = [fit.JOINT_INDEX[name] for name in ("left_ankle", "left_foot")]
+    below = [fit.JOINT_INDEX[name] for name in moved_below]
     others = [j for j in range(NUM_JOINTS) if j not in below]
     np.testing.assert_allclose(moved[others], joints[others], atol=1e-12)
-    assert fit.aim_shin(local, root, tpose, 0, strays + 2.0) is None   # out of reach
-    assert fit.aim_shin(local, root, tpose, 0, strays[:9]) is None     # too few
+    # the bones below keep their lengths (a rigid turn)
+    for name in moved_below:
+        child = fit.JOINT_INDEX[name]
+        parent = fit.PARENTS[child]
+        np.testing.assert_allclose(np.linalg.norm(moved[child] - moved[parent]),
+                                   np.linalg.norm(joints[child] - joints[parent]), atol=1e-12)
+    assert fit.aim_bone(local, root, tpose, start, strays + 2.0) is None   # out of reach
+    assert fit.aim_bone(local, root, tpose, start, strays[:9]) is None     # too few
 
 
 def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model, monkeypatch):
@@ -439,14 +449,47 @@ def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model, 
     assert miss[0.0] > 0.3
     assert miss[0.03] < 0.05
     calls = []
-    aim_shin = fit.aim_shin
-    monkeypatch.setattr(fit, "aim_shin", lambda *a: calls.append(a[3]) or aim_shin(*a))
+    aim_bone = fit.aim_bone
+    monkeypatch.setattr(fit, "aim_bone", lambda *a: calls.append(a[3]) or aim_bone(*a))
     fit.fit_frame(model, settings, state, cloud, held)
-    assert calls == [0, 1]                                  # both shins tried
+    assert calls == [fit.JOINT_INDEX[f"{side}_{joint}"] for side in ("left", "right")
+                     for joint in ("hip", "knee")]          # both thighs and shins tried
     calls.clear()
     fit.fit_frame(model, settings, state, fit.pose_model(model, rest, tpose, *fit.forward(
         start, root, tpose)).points, held)                  # the cloud the track explains
     assert calls == []
+
+
+def test_a_raised_thigh_the_fit_left_hanging_is_found_and_no_settled_fit_costs_more(model):
+    """A thigh raised in front, the shin hanging from it (a passé in a pirouette: docs/
+    source_fit.md, 05_11), the track's leg down and SKR reading it down too: the points
+    around the raised knee are strays, and the thigh aimed at them is a start that wins once
+    settled; without the stray starts the knee stays. Both settled starts are compared, so
+    the frame never costs more than without them (here, or where the foot is raised). The
+    cloud is the model's own surface: the pulls are a quarter of a real cloud's, as above."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    hip, knee = fit.JOINT_INDEX["right_hip"], fit.JOINT_INDEX["right_knee"]
+    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    _, held = fit.forward(start, root, tpose)
+    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
+    raised_thigh, raised_foot = start.copy(), start.copy()
+    raised_thigh[hip], raised_thigh[knee] = turned([1, 0, 0], -1.4), turned([1, 0, 0], 1.4)
+    raised_foot[knee] = turned([1, 0, 0], -1.5)
+    for raised, joint, found_within in ((raised_thigh, knee, 0.2), (raised_foot, None, None)):
+        rotations, joints = fit.forward(raised, root, tpose)
+        cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+        miss, cost = {}, {}
+        for share in (0.0, 0.03):
+            settings = fit.FitSettings(lost_leg_width=0.0, stray_share=share,
+                                       reading_pull=0.00125, motion_pull=0.00125)
+            fitted, found, _ = fit.fit_frame(model, settings, state, cloud, held)
+            cost[share] = fitted.cost
+            if joint is not None:
+                miss[share] = np.linalg.norm(found[joint] - joints[joint])
+        assert cost[0.03] <= cost[0.0]
+        if joint is not None:
+            assert miss[0.0] > 0.4 and miss[0.03] < found_within
 
 
 def legs_apart_scene(model):
