@@ -149,7 +149,7 @@ class FitSettings(NamedTuple):
     motion_pull: float = 0.005     # weight of the pull towards the last frames' motion
     reseed_distance: float = 0.0   # metres: a fit farther than this from SKR's reading
                                    # (mean over joints) is tried again from the reading
-    race_iterations: int = 2       # steps from each start before the better one goes on
+    race_iterations: int = 2       # steps from each start before the best one goes on
     model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
@@ -865,7 +865,8 @@ def stray_points(model, rest, tpose_joints, local, root, cloud_grid, far):
     metres from every model point at the pose ``local`` (J, 3, 3), ``root`` (3,) of the
     shaped model (``shaped``), and nearest to a leg's (a point whose heaviest bone is a hip's,
     knee's, ankle's or foot's) -> (S, 3): what the model's legs leave unexplained (a raised
-    foot the fit left hanging; a lost hand's points, nearest the arm, are not these)."""
+    foot or thigh the fit left hanging; a lost hand's points, nearest the arm, are not
+    these)."""
     rotations, joints = forward(local, root, tpose_joints)
     stray = np.empty(len(cloud_grid.points), np.bool_)
     _stray_points_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, rotations,
@@ -878,7 +879,8 @@ def stray_points(model, rest, tpose_joints, local, root, cloud_grid, far):
 def aim_bone(local, root, tpose_joints, joint, strays):
     """``local`` (J, 3, 3) with ``joint`` (a hip or a knee: its thigh or shin) turned so that
     its bone points at the mean of the ``strays`` (S, 3) within reach of the joint (1.5 bones);
-    None where fewer than 10 are. What hangs below turns with it."""
+    None where fewer than 10 are, or their mean is on the joint. What hangs below turns with
+    it. A hip's reach (about 0.6 m) takes in the other leg's strays too."""
     child = _CHILD[joint]
     rotations, joints = forward(local, root, tpose_joints)
     bone = np.linalg.norm(tpose_joints[child] - tpose_joints[joint])
@@ -887,7 +889,9 @@ def aim_bone(local, root, tpose_joints, joint, strays):
         return None
     now = joints[child] - joints[joint]
     goal = near.mean(0) - joints[joint]
-    turn = _rotation_between(now / np.linalg.norm(now), goal / max(np.linalg.norm(goal), 1e-9))
+    if np.linalg.norm(goal) < 1e-6:     # no direction to aim at
+        return None
+    turn = _rotation_between(now / np.linalg.norm(now), goal / np.linalg.norm(goal))
     parent = rotations[_PARENTS[joint]]
     aimed = np.array(local)
     aimed[joint] = parent.T @ turn @ parent @ local[joint]
@@ -1062,7 +1066,9 @@ def start_fit(model, settings, cloud, reading):
 def _settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local, root, joints,
             cost):
     """A start that won its race, fitted on: a lost lower leg looked for, then the steps the
-    race left (``fit_frame``) -> local, root, joints, cost."""
+    race left (``fit_frame``) -> local, root, joints, cost. On a stray frame every aimed start
+    that beat the race's winner is settled too (each aimed from the winner alone, not one
+    after another), so the lost-leg check runs once per start."""
     if settings.lost_leg_width > 0 and (lost_legs(
             model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
             > settings.lost_leg_share):
@@ -1127,11 +1133,10 @@ def fit_frame(model, settings, state, cloud, reading):
                               settings.lost_leg_distance)
         if len(strays) > settings.stray_share * len(cloud):
             # Cloud points the model's legs leave far away: a lower leg the fit left lying on
-            # the other (a foot raised across the other knee, where SKR reads it down too).
-            # Each shin aimed at them is a start; the better one that wins the race goes on
-            # beside the start it beat, and the cloud decides once both have settled (a thigh
-            # raised in a pirouette leaves such points too, and an aimed shin can win a short
-            # race there and settle worse).
+            # the other (a foot raised across the other knee, where SKR reads it down too), a
+            # thigh raised in a pirouette. Each thigh and shin aimed at them, from the race's
+            # winner, is a start; every one that beats the winner goes on beside it, and the
+            # lowest settled cost wins (an aimed shin can win a short race and settle worse).
             for joint in _AIMED:
                 aimed = aim_bone(local, root, tpose_joints, joint, strays)
                 if aimed is not None:
