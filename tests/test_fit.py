@@ -430,22 +430,37 @@ def test_aim_bone_points_the_bone_at_the_strays_and_moves_nothing_else(model, jo
     assert fit.aim_bone(local, root, tpose, start, strays[:9]) is None     # too few
 
 
+def held_in_t_pose(model):
+    """The mean body in the T-pose, 30 frames into a stream whose track has held it there
+    (its legs hanging down) -> rest, tpose, start (J, 3, 3) identities, root, held joints, the
+    track's ``FitState``."""
+    shape = np.zeros(len(model.points_basis))
+    rest, tpose = fit.shaped(model, shape)
+    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
+    _, held = fit.forward(start, root, tpose)
+    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
+    return rest, tpose, start, root, held, state
+
+
+def raised_leg(start, side, thigh=0.0, shin=0.0):
+    """``start`` with the ``side`` ("left", "right") thigh turned ``thigh`` radians about x
+    at the hip (negative: forward) and the shin ``shin`` at the knee (negative: up behind)."""
+    raised = start.copy()
+    raised[fit.JOINT_INDEX[f"{side}_hip"]] = turned([1, 0, 0], thigh)
+    raised[fit.JOINT_INDEX[f"{side}_knee"]] = turned([1, 0, 0], shin)
+    return raised
+
+
 def test_a_raised_foot_the_fit_left_hanging_is_found_by_its_stray_points(model, monkeypatch):
     """The shin bent up behind (a foot raised), the track's hanging down: the raised foot's
     points lie past the robust width and pull nothing, and SKR reads the leg down as well.
     With ``stray_share`` the shin aimed at them is a start and wins; without, the ankle stays
     where it was (the lost-leg steps off in both, to see this start alone). The cloud is the
     model's own surface, so its costs are a quarter of a real cloud's: the pulls are too."""
-    shape = np.zeros(len(model.points_basis))
-    rest, tpose = fit.shaped(model, shape)
-    knee, ankle = fit.JOINT_INDEX["left_knee"], fit.JOINT_INDEX["left_ankle"]
-    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
-    raised = start.copy()
-    raised[knee] = turned([1, 0, 0], -1.5)                   # the foot up behind
-    rotations, joints = fit.forward(raised, root, tpose)
+    rest, tpose, start, root, held, state = held_in_t_pose(model)
+    ankle = fit.JOINT_INDEX["left_ankle"]
+    rotations, joints = fit.forward(raised_leg(start, "left", shin=-1.5), root, tpose)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
-    _, held = fit.forward(start, root, tpose)
-    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
     miss = {}
     for share in (0.0, 0.03):
         settings = fit.FitSettings(lost_leg_width=0.0, stray_share=share,
@@ -472,18 +487,12 @@ def test_a_raised_thigh_the_fit_left_hanging_is_found_and_no_settled_fit_costs_m
     around the raised knee are strays, and the thigh aimed at them is a start that wins once
     settled; without the stray starts the knee stays. All settled starts are compared, the
     race's winner among them, so the frame never costs more than without them (here, or where
-    the foot is raised). The
-    cloud is the model's own surface: the pulls are a quarter of a real cloud's, as above."""
-    shape = np.zeros(len(model.points_basis))
-    rest, tpose = fit.shaped(model, shape)
-    hip, knee = fit.JOINT_INDEX["right_hip"], fit.JOINT_INDEX["right_knee"]
-    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
-    _, held = fit.forward(start, root, tpose)
-    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
-    raised_thigh, raised_foot = start.copy(), start.copy()
-    raised_thigh[hip], raised_thigh[knee] = turned([1, 0, 0], -1.4), turned([1, 0, 0], 1.4)
-    raised_foot[knee] = turned([1, 0, 0], -1.5)
-    for raised, joint, found_within in ((raised_thigh, knee, 0.2), (raised_foot, None, None)):
+    the foot is raised). The cloud is the model's own surface: the pulls are a quarter of a
+    real cloud's, as above."""
+    rest, tpose, start, root, held, state = held_in_t_pose(model)
+    knee = fit.JOINT_INDEX["right_knee"]
+    for raised, joint, found_within in ((raised_leg(start, "right", -1.4, 1.4), knee, 0.2),
+                                        (raised_leg(start, "right", shin=-1.5), None, None)):
         rotations, joints = fit.forward(raised, root, tpose)
         cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
         miss, cost = {}, {}
@@ -504,15 +513,9 @@ def test_the_lowest_settled_cost_wins_not_the_lowest_race_cost(model, monkeypatc
     the lowest settled cost is kept. ``_settle`` is replaced by a stand-in that settles the
     winner worst and the aimed starts in the reverse of their race order: the aimed start
     that was slowest in the race must win (so more than the race's cheapest is settled)."""
-    shape = np.zeros(len(model.points_basis))
-    rest, tpose = fit.shaped(model, shape)
-    hip, knee = fit.JOINT_INDEX["right_hip"], fit.JOINT_INDEX["right_knee"]
-    start, root = np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), np.array([0.0, 0.95, 0.0])
-    _, held = fit.forward(start, root, tpose)
-    state = fit.FitState(30, shape, start, root, np.stack([held, held]), (), 0.03)
-    raised = start.copy()
-    raised[hip], raised[knee] = turned([1, 0, 0], -1.4), turned([1, 0, 0], 1.4)
-    cloud = fit.pose_model(model, rest, tpose, *fit.forward(raised, root, tpose)).points
+    rest, tpose, start, root, held, state = held_in_t_pose(model)
+    cloud = fit.pose_model(model, rest, tpose, *fit.forward(
+        raised_leg(start, "right", -1.4, 1.4), root, tpose)).points
     settled = []
 
     def reversed_settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local,
