@@ -169,6 +169,9 @@ class FitSettings(NamedTuple):
                                    # farther than lost_leg_distance from the fitted model,
                                    # nearest its legs, also tries each thigh and shin aimed
                                    # at those points (0: never)
+    draw: int = 0                  # which seeded subset of each cloud is read: 0 the one a
+                                   # pipeline thinned to cloud_points reads too; others, to
+                                   # see how far the fit moves with the points drawn
 
 
 def check_fit_settings(settings):
@@ -184,9 +187,10 @@ def check_fit_settings(settings):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
-    if not isinstance(settings.settle_rounds, (int, np.integer)) or settings.settle_rounds < 0:
-        raise ValueError(f"FitSettings.settle_rounds must be an integer >= 0, got "
-                         f"{settings.settle_rounds!r}")
+    for name in ("settle_rounds", "draw"):
+        value = getattr(settings, name)
+        if not isinstance(value, (int, np.integer)) or value < 0:
+            raise ValueError(f"FitSettings.{name} must be an integer >= 0, got {value!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "reading_width",
                  "motion_pull", "reseed_distance", "lost_leg_width", "lost_leg_distance",
                  "swap_legs_cost", "swap_legs_distance", "stray_share"):
@@ -1025,10 +1029,12 @@ def local_from_joints(joints, tpose_joints):
     return matrices.astype(np.float64)
 
 
-def subsample(cloud, count, frame):
+def subsample(cloud, count, frame, draw=0):
     """``count`` points of a cloud (P, 3), drawn with the frame's index as seed -> float64
-    (``sampling.seeded_subset``: the points a pipeline thinned to ``count`` read too)."""
-    return np.asarray(seeded_subset(cloud, count, frame), np.float64)
+    (``sampling.seeded_subset``: draw 0 gives the points a pipeline thinned to ``count``
+    reads too; another draw seeds with (draw, frame), another subset of every frame)."""
+    return np.asarray(seeded_subset(cloud, count, frame if draw == 0 else (draw, frame)),
+                      np.float64)
 
 
 def reading_weight(settings, misread):
@@ -1045,7 +1051,8 @@ def reading_weight(settings, misread):
 def start_fit(model, settings, cloud, reading):
     """The first frame: shape and pose in alternation, from the mean body on SKR's reading
     -> FitState, joints (J, 3)."""
-    cloud, reading = subsample(cloud, settings.cloud_points, 0), np.asarray(reading, np.float64)
+    cloud = subsample(cloud, settings.cloud_points, 0, settings.draw)
+    reading = np.asarray(reading, np.float64)
     grid = build_grid(cloud)
     shape = np.zeros(len(model.points_basis))
     rest, tpose_joints = shaped(model, shape)
@@ -1089,7 +1096,8 @@ def fit_frame(model, settings, state, cloud, reading):
     """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
     from SKR's reading (or from it with its legs swapped) won."""
     t = state.frames
-    cloud, reading = subsample(cloud, settings.cloud_points, t), np.asarray(reading, np.float64)
+    cloud = subsample(cloud, settings.cloud_points, t, settings.draw)
+    reading = np.asarray(reading, np.float64)
     grid = build_grid(cloud)
     rest, tpose_joints = shaped(model, state.shape)
     before, last = state.joints

@@ -112,8 +112,8 @@ def sample_point_clouds(vertices, faces, count, rng):
 
 def seeded_subset(points, count, seed):
     """``count`` of the (P, 3) ``points`` (all of them if P <= count), drawn without
-    replacement by a generator seeded with ``seed`` (a stream's frame index): the same points
-    of the same cloud whoever asks."""
+    replacement by a generator seeded with ``seed`` (a stream's frame index, or a tuple of
+    such integers): the same points of the same cloud whoever asks."""
     if len(points) <= count:
         return points
     return points[np.random.default_rng(seed).choice(len(points), count, replace=False)]

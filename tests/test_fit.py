@@ -691,10 +691,35 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
-                         ("swap_legs_distance", float("nan"))):
+                         ("swap_legs_distance", float("nan")), ("draw", -1), ("draw", 1.5)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))
+
+
+def test_another_draw_reads_another_subset_of_every_cloud(sample_clouds):
+    """Draw 0 reads the points a pipeline thinned to ``cloud_points`` reads; another draw
+    reads another subset of the same cloud, the same one whoever asks, and the fit on it
+    tracks the same body (the sample's 5 frames: within a few millimetres)."""
+    from minretarget.retargeter import Retargeter
+    from minretarget.sampling import seeded_subset
+    from minretarget.weights import load_weights
+    clouds, _ = sample_clouds
+    cloud = clouds[3]
+    np.testing.assert_array_equal(fit.subsample(cloud, 512, 3), seeded_subset(cloud, 512, 3))
+    drawn = fit.subsample(cloud, 512, 3, draw=2)
+    np.testing.assert_array_equal(drawn, fit.subsample(cloud, 512, 3, draw=2))
+    rows = {tuple(point) for point in cloud.astype(np.float64)}
+    assert len({tuple(point) for point in drawn}) == 512 and all(tuple(p) in rows for p in drawn)
+    overlap = len({tuple(p) for p in drawn} & {tuple(p) for p in fit.subsample(cloud, 512, 3)})
+    assert overlap < 400               # 512 of 2,048 twice: about 128 shared by chance
+    assert not np.array_equal(drawn, fit.subsample(cloud, 512, 4, draw=2))
+    readings = Retargeter(load_weights()).skeleton(clouds)
+    tracks = [fit.track(fit.body_model(), fit.FitSettings(calibration_frames=2, settle_rounds=1,
+                                                          draw=draw), clouds, readings)[0]
+              for draw in (0, 1)]
+    moved = np.linalg.norm(tracks[1] - tracks[0], axis=2)
+    assert 0 < moved.mean() < 0.01
 
 
 def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):

@@ -34,3 +34,20 @@ def test_every_set_names_a_selection_set_maker():
     for split, maker in fit_settings.SELECTION_SETS.values():
         assert callable(getattr(datasets, maker))
     assert "test" not in fit_settings.SELECTION_SETS
+
+
+def test_draws_are_averaged_and_paired_draw_by_draw():
+    """Two candidates on three draws: means over draws, and the second's differences from
+    the first draw by draw, with Student's t interval (hand-computed: differences 1, 3, 5 ->
+    mean 3, sd 2, t(0.975, 2) = 4.303)."""
+    first = [{"crossed": 10, "toes": 0.1}, {"crossed": 20, "toes": 0.2},
+             {"crossed": 30, "toes": 0.3}]
+    second = [{"crossed": 11, "toes": 0.1}, {"crossed": 23, "toes": 0.2},
+              {"crossed": 35, "toes": 0.3}]
+    alone = fit_settings.over_draws(first)
+    assert alone == {"mean": {"crossed": 20.0, "toes": pytest.approx(0.2)}}
+    paired = fit_settings.over_draws(second, first)["minus_first"]
+    assert paired["crossed"]["difference"] == pytest.approx(3.0)
+    half = 4.302653 * 2.0 / 3 ** 0.5
+    assert paired["crossed"]["interval"] == pytest.approx([3 - half, 3 + half], rel=1e-6)
+    assert paired["toes"]["interval"] == pytest.approx([0.0, 0.0], abs=1e-12)
