@@ -19,13 +19,14 @@ def test_candidates_are_checked_settings():
 
 
 def test_summary_weights_sums_and_pools():
-    runs = [{"frames": 3, "figures": {"source all": 1.0, "crossed": 2, "reading won": 1,
-                                       "toes": [0.6, 3]}},
-            {"frames": 1, "figures": {"source all": 5.0, "crossed": 1, "reading won": 0,
-                                       "toes": [0.4, 1]}}]
+    runs = [{"frames": 3, "figures": {"source all": 1.0, "crossed": 2, "result crossed": 4,
+                                       "reading won": 1, "toes": [0.6, 3]}},
+            {"frames": 1, "figures": {"source all": 5.0, "crossed": 1, "result crossed": 0,
+                                       "reading won": 0, "toes": [0.4, 1]}}]
     summary = fit_settings.summarize(runs)
     assert summary["source all"] == pytest.approx((3 * 1.0 + 5.0) / 4)
     assert summary["crossed"] == 3 and summary["reading won"] == 1
+    assert summary["result crossed"] == 4
     assert summary["toes"] == pytest.approx(1.0 / 4)
 
 
