@@ -37,8 +37,10 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    goes on beside it, and the lowest cost once all have settled wins (a short race can favour
    a start that settles worse). When a start going on leaves a shin or foot in empty space
    (``lost_legs``: a kick neither start followed), its next steps run at a wider robust width
-   without the reading's pull, to reach the leg's points again. A cloud where the body is not
-   found (``LOST_COST``) is skipped: the last pose is held through it.
+   without the reading's pull, to reach the leg's points again. Where the chosen start's
+   cost still fell by more than ``still_falling`` from its race to its settling (the steps
+   have not converged: a fast limb), ``more_iterations`` steps more. A cloud where the body
+   is not found (``LOST_COST``) is skipped: the last pose is held through it.
 
 Lengths are metres; the solver works in float64.
 """
@@ -169,6 +171,8 @@ class FitSettings(NamedTuple):
                                    # farther than lost_leg_distance from the fitted model,
                                    # nearest its legs, also tries each thigh and shin aimed
                                    # at those points (0: never)
+    more_iterations: int = 4       # steps more where the chosen start's cost still fell by
+    still_falling: float = 0.003   # more than this (metres) from its race to its settling
     draw: int = 0                  # which seeded subset of each cloud is read: 0 the one a
                                    # pipeline thinned to cloud_points reads too; others, to
                                    # see how far the fit moves with the points drawn
@@ -187,13 +191,13 @@ def check_fit_settings(settings):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
-    for name in ("settle_rounds", "draw"):
+    for name in ("settle_rounds", "draw", "more_iterations"):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"FitSettings.{name} must be an integer >= 0, got {value!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "reading_width",
                  "motion_pull", "reseed_distance", "lost_leg_width", "lost_leg_distance",
-                 "swap_legs_cost", "swap_legs_distance", "stray_share"):
+                 "swap_legs_cost", "swap_legs_distance", "stray_share", "still_falling"):
         value = getattr(settings, name)
         positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
@@ -1154,7 +1158,13 @@ def fit_frame(model, settings, state, cloud, reading):
                         starts.append(other)
     settled = [_settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, *start)
                for start in starts]
-    local, root, joints, cost = min(settled, key=lambda fitted: fitted[3])
+    chosen = min(range(len(settled)), key=lambda index: settled[index][3])
+    local, root, joints, cost = settled[chosen]
+    if settings.more_iterations > 0 and starts[chosen][3] - cost > settings.still_falling:
+        # Its cost still fell fast: the fit has not converged (a fast limb); steps more.
+        local, root, joints, cost = fit_pose(
+            model, rest, tpose_joints, cloud, grid, local, root,
+            settings._replace(iterations=settings.more_iterations), pulls)
     if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
         return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration

@@ -532,6 +532,28 @@ def test_the_lowest_settled_cost_wins_not_the_lowest_race_cost(model, monkeypatc
     np.testing.assert_array_equal(found, settled[slowest][1])
 
 
+def test_a_fit_whose_cost_still_falls_takes_more_steps(model):
+    """A thigh raised forward and its shin bent back, the track and SKR's reading held in the
+    T-pose: the settled fit's cost is still falling fast since the race, and ``more_iterations``
+    steps more take it closer to the pose; a cost that fell less than ``still_falling`` takes
+    none (the same fit as without them). The cloud is the model's own surface, its costs a
+    quarter of a real cloud's: ``still_falling`` 1 mm here stands for the default's 3."""
+    rest, tpose, start, root, held, state = held_in_t_pose(model)
+    rotations, joints = fit.forward(raised_leg(start, "left", -0.6, 0.6), root, tpose)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    cost, error, found = {}, {}, {}
+    for more, falling in ((0, 0.001), (4, 0.001), (4, 1.0)):
+        settings = fit.FitSettings(lost_leg_width=0.0, stray_share=0.0, reading_pull=0.00125,
+                                   motion_pull=0.00125, more_iterations=more,
+                                   still_falling=falling)
+        fitted, found[more, falling], _ = fit.fit_frame(model, settings, state, cloud, held)
+        cost[more, falling] = fitted.cost
+        error[more, falling] = np.linalg.norm(found[more, falling] - joints, axis=1).mean()
+    assert cost[4, 0.001] < cost[0, 0.001] - 0.001
+    assert error[4, 0.001] < error[0, 0.001] - 0.003
+    np.testing.assert_array_equal(found[4, 1.0], found[0, 0.001])
+
+
 def legs_apart_scene(model):
     """The mean body with its legs apart (one forward, one back, a knee bent) and its own
     surface as the cloud -> shape, tpose, root, true local rotations, joints, cloud."""
@@ -691,7 +713,8 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
-                         ("swap_legs_distance", float("nan")), ("draw", -1), ("draw", 1.5)):
+                         ("swap_legs_distance", float("nan")), ("draw", -1), ("draw", 1.5),
+                         ("more_iterations", -1), ("still_falling", -0.001)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))
