@@ -22,7 +22,8 @@ figures (the crossed set's crossed frames 47-67 over six draws of the default: d
 source_fit.md, "How far the figures move with the points drawn"). ``--draws K`` runs every
 candidate on the draws 0..K-1 (``FitSettings.draw``) and gives the figures' mean over draws,
 each draw's, and each candidate's difference from the first, draw by draw, with its 95 %
-interval over the draws (Student's t).
+interval over the draws (Student's t); in its JSON, "mean", "per_draw" and "minus_first" hold
+those, while "summary" and "per_sequence" stay draw 0's.
 """
 import argparse
 import json
@@ -129,6 +130,8 @@ def main(argv=None):
         parser.error(f"--cmu {args.cmu}: no such folder (the {args.set} trials are read there)")
     from training.data import datasets
     candidates = args.fit or [FitSettings()]
+    if args.draws > 1 and any(settings.draw for settings in candidates):
+        parser.error("--draws runs every candidate on draws 0..K-1: leave out their draw")
     draws = [None] if args.draws == 1 else list(range(args.draws))
     weights = load_weights()
     reader = Retargeter(weights)

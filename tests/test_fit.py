@@ -524,7 +524,8 @@ def test_the_lowest_settled_cost_wins_not_the_lowest_race_cost(model, monkeypatc
         # below LOST_COST, so that the frame is kept
         return local, root, joints, 0.05 if len(settled) == 1 else 0.04 - cost
     monkeypatch.setattr(fit, "_settle", reversed_settle)
-    settings = fit.FitSettings(lost_leg_width=0.0, reading_pull=0.00125, motion_pull=0.00125)
+    settings = fit.FitSettings(lost_leg_width=0.0, reading_pull=0.00125, motion_pull=0.00125,
+                               more_iterations=0)
     _, found, _ = fit.fit_frame(model, settings, state, cloud, held)
     race_costs = [cost for cost, _ in settled]
     assert len(settled) >= 3 and max(race_costs[1:]) < race_costs[0]     # two aims beat it
@@ -552,6 +553,40 @@ def test_a_fit_whose_cost_still_falls_takes_more_steps(model):
     assert cost[4, 0.001] < cost[0, 0.001] - 0.001
     assert error[4, 0.001] < error[0, 0.001] - 0.003
     np.testing.assert_array_equal(found[4, 1.0], found[0, 0.001])
+
+
+def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
+    """The extra steps go by the chosen start's own fall, from its race to its settling, not
+    the race winner's: ``_settle`` is replaced by a stand-in that settles the race's winner
+    at 50 mm and every aimed start 2 mm (or 5 mm) below its race cost. An aimed start wins;
+    with 2 mm no steps more are taken (the race winner's cost minus the chosen one's is over
+    3 mm), with 5 mm ``more_iterations`` steps are."""
+    rest, tpose, start, root, held, state = held_in_t_pose(model)
+    cloud = fit.pose_model(model, rest, tpose, *fit.forward(
+        raised_leg(start, "right", -1.4, 1.4), root, tpose)).points
+    more = []
+    fit_pose = fit.fit_pose
+
+    def counted(*arguments):
+        more.append(arguments[7].iterations == 7)
+        return fit_pose(*arguments)
+    monkeypatch.setattr(fit, "fit_pose", counted)
+    race_costs = []
+    for fall, steps in ((0.002, False), (0.005, True)):
+        race_costs.clear()
+
+        def settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local, root,
+                   joints, cost):
+            race_costs.append(cost)
+            return local, root, joints, 0.05 if len(race_costs) == 1 else cost - fall
+        monkeypatch.setattr(fit, "_settle", settle)
+        more.clear()
+        settings = fit.FitSettings(lost_leg_width=0.0, reading_pull=0.00125,
+                                   motion_pull=0.00125, more_iterations=7)
+        fit.fit_frame(model, settings, state, cloud, held)
+        assert len(race_costs) >= 2                                  # an aimed start won
+        assert race_costs[0] - (min(race_costs[1:]) - fall) > settings.still_falling
+        assert more[-1] == steps and sum(more) == steps
 
 
 def legs_apart_scene(model):
@@ -720,7 +755,7 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                 fit_source=fit.FitSettings()._replace(**{field: value})))
 
 
-def test_another_draw_reads_another_subset_of_every_cloud(sample_clouds):
+def test_another_draw_reads_another_subset_of_every_cloud(sample_clouds, monkeypatch):
     """Draw 0 reads the points a pipeline thinned to ``cloud_points`` reads; another draw
     reads another subset of the same cloud, the same one whoever asks, and the fit on it
     tracks the same body (the sample's 5 frames: within a few millimetres)."""
@@ -738,9 +773,14 @@ def test_another_draw_reads_another_subset_of_every_cloud(sample_clouds):
     assert overlap < 400               # 512 of 2,048 twice: about 128 shared by chance
     assert not np.array_equal(drawn, fit.subsample(cloud, 512, 4, draw=2))
     readings = Retargeter(load_weights()).skeleton(clouds)
-    tracks = [fit.track(fit.body_model(), fit.FitSettings(calibration_frames=2, settle_rounds=1,
-                                                          draw=draw), clouds, readings)[0]
-              for draw in (0, 1)]
+    seeds, seeded = [], fit.seeded_subset
+    monkeypatch.setattr(fit, "seeded_subset", lambda *a: seeds.append(a[2]) or seeded(*a))
+    tracks = []
+    for draw, drawn_with in ((0, [0, 1, 2, 3, 4]), (1, [(1, t) for t in range(5)])):
+        seeds.clear()
+        tracks.append(fit.track(fit.body_model(), fit.FitSettings(
+            calibration_frames=2, settle_rounds=1, draw=draw), clouds, readings)[0])
+        assert seeds == drawn_with                      # every frame's subset, this draw's
     moved = np.linalg.norm(tracks[1] - tracks[0], axis=2)
     assert 0 < moved.mean() < 0.01
 

@@ -52,3 +52,12 @@ def test_draws_are_averaged_and_paired_draw_by_draw():
     half = 4.302653 * 2.0 / 3 ** 0.5
     assert paired["crossed"]["interval"] == pytest.approx([3 - half, 3 + half], rel=1e-6)
     assert paired["toes"]["interval"] == pytest.approx([0.0, 0.0], abs=1e-12)
+
+
+def test_draws_refuse_a_candidate_with_its_own_draw(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        fit_settings.main(["--draws", "2", "--fit", '{"draw": 3}', "--cmu", str(tmp_path)])
+    assert "leave out their draw" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        fit_settings.main(["--draws", "0", "--cmu", str(tmp_path)])
+    assert "--draws must be at least 1" in capsys.readouterr().err
