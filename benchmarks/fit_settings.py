@@ -132,7 +132,8 @@ def main(argv=None):
     candidates = args.fit or [FitSettings()]
     if args.draws > 1 and any(settings.draw for settings in candidates):
         parser.error("--draws runs every candidate on draws 0..K-1: leave out their draw")
-    draws = [None] if args.draws == 1 else list(range(args.draws))
+    several = args.draws > 1              # else: each candidate on its own draw, once
+    draws = list(range(args.draws)) if several else [None]
     weights = load_weights()
     reader = Retargeter(weights)
     runs = {(index, draw): [] for index in range(len(candidates)) for draw in draws}
@@ -155,7 +156,7 @@ def main(argv=None):
         results.append({"settings": settings._asdict(), "summary": per_draw[0],
                         "fit_ms_per_frame": 1e3 * fit_seconds[index] / total,
                         "per_sequence": runs[index, draws[0]]})
-        if draws != [None]:
+        if several:
             results[-1].update({"draws": draws, "per_draw": per_draw,
                                 "per_draw_sequences": [runs[index, d] for d in draws],
                                 **over_draws(per_draw, first)})
@@ -163,12 +164,12 @@ def main(argv=None):
         row = results[-1].get("mean", per_draw[0])
         print(json.dumps({key: v for key, v in settings._asdict().items()
                           if v != FitSettings._field_defaults[key]})
-              + (f" (mean of {len(draws)} draws)" if draws != [None] else "") + ": "
+              + (f" (mean of {len(draws)} draws)" if several else "") + ": "
               + ", ".join(f"{key} {value:.3f}" if key == "toes" else
                           f"{key} {value:.2f}" if isinstance(value, float) else
                           f"{key} {value}" for key, value in row.items())
               + f", {results[-1]['fit_ms_per_frame']:.1f} ms a frame")
-        if draws != [None]:
+        if several:
             print("  crossed per draw: " + ", ".join(str(s["crossed"]) for s in per_draw)
                   + "; source all, mm: " + ", ".join(f"{s['source all']:.2f}" for s in per_draw))
         for key, paired in results[-1].get("minus_first", {}).items():
