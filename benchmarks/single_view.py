@@ -46,7 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from accuracy import command_line, frame_weighted, load_measured, sequence_metrics, write_text
+from accuracy import (command_line, comparison_table, frame_weighted, load_measured,
+                      paired_difference, sequence_metrics, write_text)
 from minretarget.conventions import MIN_POINTS
 from minretarget.metrics import METRIC_NAMES, joint_errors, pa_mpjpe
 from minretarget.pipeline import PRESETS
@@ -60,6 +61,9 @@ from training.data.depth_camera import (CHEST_JOINT, VIEWS, following, view_came
 FULL = "full cloud"
 CAMERAS = ("fixed", "following")
 PRESET_NAMES = ("regressed", "fitted")
+# A row beside the presets: the fitted preset told where each single view's camera stands
+# (``Retargeter.step(points, viewpoint)``); on the full cloud it has none, as ``fitted``.
+TOLD = "fitted+viewpoint"
 GOAL = 1.5            # the issue's: single-view PA-MPJPE within 1.5x of the full cloud's
 VALIDATION_BODIES = 15  # validation_sequences draws its bodies from the first 15 'val' seeds
 
@@ -78,7 +82,8 @@ def render_views(sequence, body, cameras, points, seed, index):
         points: points kept per frame at most.
         seed, index: the run's seed and the trial's number (seed the subsampling).
     Returns:
-        {view name: list of T (P_t, 3) float32 clouds}, and the seconds spent rendering.
+        {view name: list of T (P_t, 3) float32 clouds}, {view name: (T, 3) the camera's
+        positions}, and the seconds spent rendering.
     """
     vertices, joints = pose_body(body, sequence["rotations"], sequence["source_root"])
     error = np.abs(joints - sequence["source_joints"]).max()
@@ -87,7 +92,7 @@ def render_views(sequence, body, cameras, points, seed, index):
                            "m off the stored ones")
     root = sequence["source_root"]
     placed = view_cameras(sequence["rotations"][0, 0], root[0], joints[0, CHEST_JOINT, 1])
-    out, start = {}, time.perf_counter()
+    out, positions, start = {}, {}, time.perf_counter()
     for rig_number, rig in enumerate(CAMERAS):
         if rig not in cameras:
             continue
@@ -96,15 +101,17 @@ def render_views(sequence, body, cameras, points, seed, index):
             shifts = np.zeros_like(root, dtype=np.float64)
             if rig == "following":
                 shifts[:, [0, 2]] = root[:, [0, 2]] - root[0, [0, 2]]
-            out[f"{view} ({rig})"] = [
-                visible_points(frame, body.faces, following(placed[view], shift), points, rng)
-                for frame, shift in zip(vertices, shifts)]
-    return out, time.perf_counter() - start
+            cameras = [following(placed[view], shift) for shift in shifts]
+            out[f"{view} ({rig})"] = [visible_points(frame, body.faces, camera, points, rng)
+                                      for frame, camera in zip(vertices, cameras)]
+            positions[f"{view} ({rig})"] = np.stack([camera.position for camera in cameras])
+    return out, positions, time.perf_counter() - start
 
 
-def run_stream(retargeter, clouds):
+def run_stream(retargeter, clouds, viewpoints=None):
     """One fresh online stream: ``retargeter.step`` on each cloud of at least ``MIN_POINTS``
-    points; a frame with fewer is skipped and the last result held.
+    points (told its camera's position, ``viewpoints`` (T, 3), if given); a frame with fewer
+    is skipped and the last result held.
 
     Returns:
         joints (T, J, 3), vertices (T, V, 3), source joints SMRM saw (T, J, 3), the (T,) bool
@@ -120,7 +127,7 @@ def run_stream(retargeter, clouds):
         for t, cloud in enumerate(clouds):
             if len(cloud) >= MIN_POINTS:
                 start = time.perf_counter()
-                last = retargeter.step(cloud)
+                last = retargeter.step(cloud, None if viewpoints is None else viewpoints[t])
                 seconds += time.perf_counter() - start
             elif last is None:
                 raise ValueError(f"frame {t}: {len(cloud)} points seen before any frame was "
@@ -137,13 +144,16 @@ def row_name(view, preset):
     return f"{view}, {preset}"
 
 
-def score_trial(retargeters, views, sequence):
-    """Every (view, preset) row of one trial: metrics and the figures beside them."""
+def score_trial(retargeters, views, sequence, viewpoints):
+    """Every (view, preset) row of one trial: metrics and the figures beside them
+    (``viewpoints``: the single views' camera positions, for the ``TOLD`` row)."""
     rows, extra = {}, {}
     for view, clouds in views.items():
         counts = np.array([len(c) for c in clouds])
         for preset, retargeter in retargeters.items():
-            joints, vertices, sources, seen, caught, seconds = run_stream(retargeter, clouds)
+            told = viewpoints.get(view) if preset == TOLD else None
+            joints, vertices, sources, seen, caught, seconds = run_stream(retargeter, clouds,
+                                                                          told)
             name = row_name(view, preset)
             rows[name] = (joints, vertices)
             extra[name] = {
@@ -205,8 +215,10 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cmu", default="../shared/data/cmu", help="CMU data (the trials)")
     parser.add_argument("--weights", help="weights file (default: the shipped weights)")
-    parser.add_argument("--presets", nargs="+", choices=sorted(PRESETS),
-                        default=list(PRESET_NAMES), help="pipeline presets to run")
+    parser.add_argument("--presets", nargs="+", choices=[*sorted(PRESETS), TOLD],
+                        default=list(PRESET_NAMES),
+                        help=f"pipeline presets to run ({TOLD}: the fitted preset told each "
+                             "single view's camera position)")
     parser.add_argument("--cameras", nargs="+", choices=CAMERAS, default=list(CAMERAS),
                         help="camera rigs: fixed at frame 0's place, or following the root")
     parser.add_argument("--points", type=int, default=2048,
@@ -231,18 +243,19 @@ def main(argv=None):
     results, render_seconds = [], 0.0
     for index, trial in enumerate(held_out):
         sequence = trial.build()
-        clouds, seconds = render_views(sequence, bodies[str(sequence["source_body"])],
-                                       args.cameras, args.points, args.seed, index)
+        clouds, viewpoints, seconds = render_views(
+            sequence, bodies[str(sequence["source_body"])], args.cameras, args.points,
+            args.seed, index)
         render_seconds += seconds
         clouds = {FULL: list(sequence["source_points"]), **clouds}
         retargeters = {}
         for preset in args.presets:
-            retargeters[preset] = Retargeter(weights, preset)
+            retargeters[preset] = Retargeter(weights, "fitted" if preset == TOLD else preset)
             retargeters[preset].set_target(sequence["target_tpose_points"])
         results.append({"sequence": str(sequence["name"]),
                         "category": str(sequence["category"]),
                         "frames": len(sequence["source_points"]),
-                        "metrics": score_trial(retargeters, clouds, sequence)})
+                        "metrics": score_trial(retargeters, clouds, sequence, viewpoints)})
         got = results[-1]["metrics"]
         print(f"[{index + 1}/{len(held_out)}] {trial.name} ({results[-1]['frames']} frames): "
               + ", ".join(f"{view} {got[row_name(view, args.presets[-1])]['PA-MPJPE']:.4f}"
@@ -258,6 +271,13 @@ def main(argv=None):
                  f"mean fed per frame seen; metres, Acc m/frame^2; source err: the source "
                  f"skeleton fed to SMRM against the truth; ratio: PA-MPJPE over the same "
                  f"preset's full cloud, goal <= {GOAL}x)")
+    paired = {}
+    if TOLD in args.presets and "fitted" in args.presets:
+        for view in views:
+            paired[view] = paired_difference(results, row_name(view, TOLD),
+                                             row_name(view, "fitted"))
+            text += "\n\n" + comparison_table(
+                paired[view], f"{view}: {TOLD} minus fitted, per trial, frame-weighted")
     print(text)
     print(f"\n{frames} frames, {len(views)} views x {len(args.presets)} presets in "
           f"{seconds:.0f} s (rendering {render_seconds:.0f} s)")
@@ -266,7 +286,7 @@ def main(argv=None):
     if args.json:
         write_text(args.json, json.dumps(
             {"split": "validation", "rows": pooled, "ratios_to_full_cloud": ratios,
-             "goal": GOAL, "views": views, "presets": args.presets, "cameras": args.cameras,
+             "goal": GOAL, "paired_told_minus_fitted": paired, "views": views, "presets": args.presets, "cameras": args.cameras,
              "points": args.points, "seed": args.seed, "frames": frames,
              "per_sequence": results, **record, "seconds": round(seconds, 1),
              "render_seconds": round(render_seconds, 1)}, indent=2))

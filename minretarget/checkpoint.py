@@ -154,18 +154,20 @@ def same_source(then, now, frames_done):
 
 
 def run_record(source, target, weights, formats, space, points, seed, config=PipelineConfig(),
-               skeleton_map=None):
+               skeleton_map=None, viewpoint=None):
     """What a resumed run must repeat, as a JSON-able dict: the source (its resolved path,
     kind, frame count, rate, units and up axis, a BVH's skeleton map, and its files' sizes
     and times: ``source_stamp``), the target and weights (SHA-256 of their arrays), the
-    formats, units, up axis, the resampling, and the pipeline (``pipeline.PipelineConfig``:
-    the settings that change the result with these weights and this kind of source)."""
+    formats, units, up axis, the resampling, a depth camera's viewpoint, and the pipeline
+    (``pipeline.PipelineConfig``: the settings that change the result with these weights and
+    this kind of source)."""
     fitted = config.fit_source is not None and source.kind == "points"
     return {"version": VERSION, "source": str(Path(source.path).resolve()),
             "source_kind": source.kind, "frames": source.count, "fps": source.fps,
             # Recorded only when not canonical, so runs from before it match their checkpoints.
             **({"source_space": list(source.space)} if source.space != CANONICAL else {}),
             **({"skeleton_map": skeleton_map} if skeleton_map else {}),
+            **({"viewpoint": list(viewpoint)} if viewpoint is not None else {}),
             "source_stamp": source_stamp(source),
             "target_sha256": _digest(target),
             "weights_sha256": _digest(flatten_weights(weights).values()),

@@ -140,8 +140,9 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         open_at: ``open_at(start)`` -> ``sources.Source`` whose frames begin at ``start``.
         out_dir: output folder; formats: names from ``outputs.FORMATS``.
         space: ``units.Space`` of the outputs.
-        settings: {"points": ..., "seed": ..., "skeleton_map": ... (optional)}: how the
-            source was resampled, and a BVH's skeleton map.
+        settings: {"points": ..., "seed": ..., "skeleton_map": ..., "viewpoint": ...
+            (optional)}: how the source was resampled, a BVH's skeleton map, and the depth
+            camera that saw a cloud source ((3,) canonical metres, ``Retargeter.step``).
         resume: continue the interrupted run in ``out_dir``; overwrite: replace the files of
             an earlier run there (``checkpoint.prepare_out_dir``).
         progress: show a tqdm progress bar on stderr.
@@ -172,7 +173,9 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     if demo:
         (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
     retargeter.state = state
-    step = retargeter.step if source.kind == "points" else retargeter.step_skeleton
+    viewpoint = settings.get("viewpoint")
+    step = (retargeter.step_skeleton if source.kind != "points" else retargeter.step
+            if viewpoint is None else (lambda points: retargeter.step(points, viewpoint)))
     track = Track(out_dir / TRACK, start)
     # A resumed run's npz gets the first frames' vertices again from their saved rotations
     # and root, posed exactly as the interrupted run posed them.
@@ -312,12 +315,25 @@ def source_of(args):
     if args.points and len(frame_0) < args.points:
         warnings.warn(f"{raw.frame_name(0)}: {len(frame_0)} points, fewer than --points "
                       f"{args.points}: clouds that small are used whole", InputWarning)
+    viewpoint = None
+    if args.viewpoint is not None:
+        if raw.kind != "points":
+            raise ValueError(f"{raw.path}: --viewpoint places the depth camera that saw a "
+                             f"point cloud, and this source is a {raw.kind} motion")
+        if pipeline_config(args).fit_source is None:
+            raise ValueError(f"--viewpoint is read by the source fit, which --preset "
+                             f"{args.preset} does not run: add --source-fit, or use the "
+                             "fitted preset (the default)")
+        # In the source's units and axes, as its points are.
+        viewpoint = to_canonical([float(value) for value in args.viewpoint.split(",")],
+                                 space).tolist()
 
     def open_at(first):
         return open_source(args.source, space, start=first, **reading)
 
     return open_at, raw.count, {"points": args.points, "seed": args.seed,
-                                "skeleton_map": skeleton_map}
+                                "skeleton_map": skeleton_map,
+                                **({"viewpoint": viewpoint} if viewpoint else {})}
 
 
 def _retarget(args):
@@ -406,6 +422,18 @@ def int_at_least(minimum):
         return value
     parse.__name__ = f"integer >= {minimum}"
     return parse
+
+
+def viewpoint_text(text):
+    """``--viewpoint X,Y,Z``: three finite numbers, checked and kept as written (a batch job
+    writes it so too)."""
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not np.isfinite(values).all():
+        raise argparse.ArgumentTypeError(f"must be three numbers X,Y,Z, got {text!r}")
+    return text
 
 
 def positive_float(text):
@@ -509,6 +537,12 @@ def add_retarget_arguments(retarget):
                           help="take every SKR skeleton as it comes (default: one that faces "
                                "far from the heading kept so far is read again from the cloud "
                                "turned half round, and the reading facing nearer kept)")
+    retarget.add_argument("--viewpoint", type=viewpoint_text, default=None, metavar="X,Y,Z",
+                          help="where the one depth camera that saw every source cloud stood, "
+                               "in the source's units and axes (its points' frame): the source "
+                               "fit then fits only the side of the body the camera sees "
+                               "(default: clouds over the whole body; docs/single_view.md; "
+                               "write --viewpoint=-1,2,3 when X is negative)")
     retarget.add_argument("--source-fit", action="store_true",
                           help="track a calibrated body model in every source cloud after SKR "
                                "and hand its joints on, neither smoothed nor denoised (the "

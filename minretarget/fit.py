@@ -68,6 +68,9 @@ TRUNCATE = 0.05                      # metres: the farthest a point counts in a 
 # cloud that misses the model entirely costs 0.075: every distance past TRUNCATE): the fit
 # holds the last pose through it instead of following SKR's reading of it.
 LOST_COST = 0.06
+# What one camera sees of the model (``_seen_kernel``): a point more than HIDDEN_DEPTH behind
+# the model's nearest surface along its ray, in cells SEEN_CELL wide, is hidden (metres).
+HIDDEN_DEPTH, SEEN_CELL = 0.08, 0.03
 # Robust widths (metres) of the first frame's rounds of pose and shape: wide first, so that a
 # body far from the mean is pulled in before it is fitted.
 CALIBRATION_WIDTHS = (0.2, 0.1, 0.07, 0.05, 0.03, 0.03, 0.03, 0.03)
@@ -217,7 +220,8 @@ class FitState(NamedTuple):
     local: np.ndarray           # (J, 3, 3) the last frame's local rotations
     root: np.ndarray            # (3,) its pelvis position, metres
     joints: np.ndarray          # (2, J, 3) the last two frames' joints (older first)
-    calibration: tuple          # ((cloud (P, 3), its grid, local, root), ...), calibrating
+    calibration: tuple          # ((cloud (P, 3), its grid, local, root, viewpoint (3,) or
+                                # None), ...), calibrating
     cost: float = 0.0           # the last frame's fit cost (``fit_pose``), metres
 
 
@@ -456,8 +460,10 @@ def _pull_normal_equations_kernel(joints, goal, weight, parents, hessian, gradie
 
 @kernel
 def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
-                          cloud_starts, robust_width, model_to_cloud, model_stride):
-    """``surface_terms`` on arrays: -> model index (N,), targets (N, 3), weights (N,), cost."""
+                          cloud_starts, robust_width, model_to_cloud, model_stride, seen):
+    """``surface_terms`` on arrays: -> model index (N,), targets (N, 3), weights (N,), cost.
+    ``seen`` (Q,) bool: the model points the outward term may pair (all, unless one camera
+    saw the cloud: ``_seen_kernel``)."""
     # Both ways in one pass over the cloud's grid (``nearest``): each cloud point's nearest
     # model point (inward), each stride-th model point's nearest cloud point (outward).
     nearest_distance, nearest_index = np.empty(len(posed)), np.empty(len(posed), np.int64)
@@ -466,12 +472,20 @@ def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cl
     _nearest_both_ways_kernel(cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
                               cloud_starts, posed, model_stride, nearest_distance,
                               nearest_index, inward_distance, inward_index)
-    outward_count = (len(posed) + model_stride - 1) // model_stride   # every stride-th
+    outward_count = 0                                      # every stride-th point seen
+    for q in range(0, len(posed), model_stride):
+        if seen[q]:
+            outward_count += 1
+    outward_model = np.empty(outward_count, np.int64)
     outward_distance = np.empty(outward_count)
     outward_nearest = np.empty(outward_count, np.int64)
-    for i in range(outward_count):
-        outward_distance[i] = nearest_distance[i * model_stride]
-        outward_nearest[i] = nearest_index[i * model_stride]
+    i = 0
+    for q in range(0, len(posed), model_stride):
+        if seen[q]:
+            outward_model[i] = q
+            outward_distance[i] = nearest_distance[q]
+            outward_nearest[i] = nearest_index[q]
+            i += 1
     # Pairs that share a model point share its row (``_plane_row`` depends on the point alone):
     # summed per model point, their weights and weighted targets give the same normal
     # equations from at most Q rows instead of P + Q / stride.
@@ -488,9 +502,9 @@ def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cl
     for i in range(outward_count):
         w = (model_to_cloud * _robust_weight(outward_distance[i], robust_width)
              / outward_count)
-        total[i * model_stride] += w
+        total[outward_model[i]] += w
         for a in range(3):
-            weighted_targets[i * model_stride, a] += w * cloud[outward_nearest[i], a]
+            weighted_targets[outward_model[i], a] += w * cloud[outward_nearest[i], a]
         outward_cost += min(outward_distance[i], TRUNCATE)
     count = 0
     for q in range(len(posed)):
@@ -504,8 +518,59 @@ def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cl
             for a in range(3):
                 targets[count, a] = weighted_targets[q, a] / total[q]
             count += 1
-    cost = inward_cost / len(cloud) + model_to_cloud * outward_cost / outward_count
+    cost = inward_cost / len(cloud)
+    if outward_count > 0:
+        cost += model_to_cloud * outward_cost / outward_count
     return paired, targets, weights, cost
+
+
+@kernel
+def _seen_kernel(posed, posed_normals, viewpoint, hidden_depth, cell, seen):
+    """Which posed model points (Q, 3), unit normals (Q, 3), a camera at ``viewpoint`` (3,)
+    would see -> ``seen`` (Q,) bool: those facing it and not hidden behind the model's own
+    surface, i.e. no model point in the 3 x 3 cells around its ray (``cell`` metres wide at
+    the model's distance) more than ``hidden_depth`` nearer. A z-buffer of the model's own
+    points, as model-based depth trackers test their model's visibility."""
+    count = posed.shape[0]
+    centre = np.zeros(3)
+    for q in range(count):
+        for a in range(3):
+            centre[a] += posed[q, a] / count
+    axis = centre - viewpoint
+    distance = np.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
+    axis /= distance
+    helper = np.zeros(3)                        # the world axis least along the view's
+    helper[np.argmin(np.abs(axis))] = 1.0
+    right = np.cross(axis, helper)
+    right /= np.sqrt(right[0] ** 2 + right[1] ** 2 + right[2] ** 2)
+    up = np.cross(axis, right)
+    depth, across, along = np.empty(count), np.empty(count), np.empty(count)
+    for q in range(count):
+        ray = posed[q] - viewpoint
+        depth[q] = ray[0] * axis[0] + ray[1] * axis[1] + ray[2] * axis[2]
+        scale = distance / max(depth[q], 1e-6)  # a perspective image, in metres at the model
+        across[q] = scale * (ray[0] * right[0] + ray[1] * right[1] + ray[2] * right[2])
+        along[q] = scale * (ray[0] * up[0] + ray[1] * up[1] + ray[2] * up[2])
+    low_x, low_y = across.min(), along.min()
+    width = int((across.max() - low_x) / cell) + 1
+    height = int((along.max() - low_y) / cell) + 1
+    nearest = np.full((width, height), np.inf)
+    column, row = np.empty(count, np.int64), np.empty(count, np.int64)
+    for q in range(count):
+        column[q] = int((across[q] - low_x) / cell)
+        row[q] = int((along[q] - low_y) / cell)
+        nearest[column[q], row[q]] = min(nearest[column[q], row[q]], depth[q])
+    for q in range(count):
+        facing = 0.0
+        for a in range(3):
+            facing += posed_normals[q, a] * (viewpoint[a] - posed[q, a])
+        seen[q] = facing > 0.0 and depth[q] > 0.0
+        if not seen[q]:
+            continue
+        for x in range(max(column[q] - 1, 0), min(column[q] + 2, width)):
+            for y in range(max(row[q] - 1, 0), min(row[q] + 2, height)):
+                if nearest[x, y] < depth[q] - hidden_depth:
+                    seen[q] = False
 
 
 @kernel
@@ -607,9 +672,11 @@ def _gauss_newton(iterations, rest, tpose, bone_index, bone_weight, normals, par
                   chain_count, chain_reach, chain_joints, slots, slot_count, links,
                   link_count, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
                   cloud_starts, robust_width, model_to_cloud, model_stride, pull_weight,
-                  pull_goal, local, root, joints):
+                  pull_goal, viewpoint, local, root, joints):
     """``fit_pose``'s Gauss-Newton steps, in place on ``local`` (J, 3, 3) and ``root`` (3,);
     ``joints`` (J, 3) gets the result's; returns the cost measured before the last step.
+    ``viewpoint``: None, or the (3,) camera that saw the cloud (the outward term then pairs
+    only the model points it would see, at each step's pose).
     Python over the step's kernels, not one kernel around them: numba would compile such a
     kernel with all of them linked in and optimised again (issue 40)."""
     count, bodies = rest.shape[0], tpose.shape[0]
@@ -620,15 +687,18 @@ def _gauss_newton(iterations, rest, tpose, bone_index, bone_weight, normals, par
     turned = np.empty_like(local)
     hessian = np.empty((parameters, parameters))
     gradient, step = np.empty(parameters), np.empty(parameters)
+    seen = np.ones(count, np.bool_)
     cost = 0.0
     for _ in range(iterations):
         _forward_kernel(local, root, tpose, parents, rotations, joints)
         _pose_points_kernel(rest, tpose, bone_index, bone_weight, normals, rotations, joints,
                             chain_count, chain_reach, chain_joints, slots, slot_count, links,
                             link_count, posed, posed_normals, lever)
+        if viewpoint is not None:
+            _seen_kernel(posed, posed_normals, viewpoint, HIDDEN_DEPTH, SEEN_CELL, seen)
         paired, targets, weights, cost = _surface_pairs_kernel(
             posed, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
-            robust_width, model_to_cloud, model_stride)
+            robust_width, model_to_cloud, model_stride, seen)
         hessian[:] = 0.0
         gradient[:] = 0.0
         _plane_normal_equations_kernel(paired, targets, weights, posed, posed_normals, lever,
@@ -696,15 +766,15 @@ def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints
 
 @kernel
 def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, lower_legs,
-                      cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order, cloud_starts,
-                      far, shares):
+                      seen, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
+                      cloud_starts, far, shares):
     """``lost_legs`` on arrays: shares (2,) gets, per lower leg, the share of its model points
-    (those whose heaviest bone is one of the leg's, ``lower_legs`` (J,) 0 or 1, else -1),
-    posed by LBS, that lie farther than ``far`` from the cloud."""
+    (those whose heaviest bone is one of the leg's, ``lower_legs`` (J,) 0 or 1, else -1, and
+    ``seen`` (Q,) bool), posed by LBS, that lie farther than ``far`` from the cloud."""
     leg = np.empty(rest.shape[0], np.int64)
     count = 0
     for q in range(rest.shape[0]):
-        leg[q] = lower_legs[_heaviest_bone(bone_index, bone_weight, q)]
+        leg[q] = lower_legs[_heaviest_bone(bone_index, bone_weight, q)] if seen[q] else -1
         if leg[q] >= 0:
             count += 1
     points = np.empty((count, 3))
@@ -848,21 +918,25 @@ def apply_step(local, root, rotations, step):
     return new, root + step[:3]
 
 
-def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far):
+def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far, viewpoint=None):
     """Per lower leg (left, right), the share of its model points (shin and foot: those whose
     heaviest skinning bone is the knee's, the ankle's or the foot's) that lie farther than
     ``far`` metres from the cloud (``cloud_grid``, ``nearest.build_grid``) at the pose
     ``local`` (J, 3, 3), ``root`` (3,) of the shaped model (``shaped``) -> (2,) float64.
-    A leg mostly in empty space is lost: the fit's robust terms no longer reach its cloud."""
+    A leg mostly in empty space is lost: the fit's robust terms no longer reach its cloud.
+    ``viewpoint``: None, or the (3,) camera that saw the cloud: only the points it would see
+    count (the back of a shin seen from the front is far from every cloud point)."""
     local = np.ascontiguousarray(local, np.float64)
     root = np.ascontiguousarray(root, np.float64)
     if local.shape != (NUM_JOINTS, 3, 3) or root.shape != (3,) or far <= 0:
         raise ValueError(f"lost_legs: local must be (22, 3, 3), root (3,) and far > 0, got "
                          f"{local.shape}, {root.shape}, {far!r}")
     rotations, joints = forward(local, root, tpose_joints)
+    seen = (np.ones(len(rest), np.bool_) if viewpoint is None else
+            seen_points(pose_model(model, rest, tpose_joints, rotations, joints), viewpoint))
     shares = np.empty(2)
     _lost_legs_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, rotations,
-                      joints, _LOWER_LEGS, cloud_grid.points, cloud_grid.origin,
+                      joints, _LOWER_LEGS, seen, cloud_grid.points, cloud_grid.origin,
                       cloud_grid.cell, cloud_grid.dims, cloud_grid.order, cloud_grid.starts,
                       float(far), shares)
     return shares
@@ -926,16 +1000,28 @@ def _any_normal(a):
 
 # ----------------------------------------------------------------------------- one frame
 
-def surface_terms(posed, cloud, cloud_grid, settings):
+def surface_terms(posed, cloud, cloud_grid, settings, viewpoint=None):
     """Both directions' nearest pairs, each cloud point with its nearest model point and
     (every ``model_stride``-th) model point with its nearest cloud point, robustly weighted
     (Geman-McClure at ``robust_width``) and summed per model point -> model index (N,),
     targets (N, 3), weights (N,), and the fit's cost: the mean truncated distance cloud ->
-    model plus ``model_to_cloud`` times model -> cloud (metres)."""
+    model plus ``model_to_cloud`` times model -> cloud (metres). ``viewpoint``: None, or the
+    (3,) camera that saw the cloud: only the model points it would see pair outward."""
     return _surface_pairs_kernel(posed.points, cloud, cloud_grid.origin, cloud_grid.cell,
                                  cloud_grid.dims, cloud_grid.order, cloud_grid.starts,
                                  float(settings.robust_width), float(settings.model_to_cloud),
-                                 int(settings.model_stride))
+                                 int(settings.model_stride), seen_points(posed, viewpoint))
+
+
+def seen_points(posed, viewpoint):
+    """Which of the ``posed`` model's points (``Posed``) a camera at ``viewpoint`` (3,) would
+    see (facing it, not hidden behind the model's own surface: ``_seen_kernel``) -> (Q,)
+    bool; all where ``viewpoint`` is None (the cloud covers the whole body)."""
+    seen = np.ones(len(posed.points), np.bool_)
+    if viewpoint is not None:
+        _seen_kernel(posed.points, posed.normals, np.asarray(viewpoint, np.float64),
+                     HIDDEN_DEPTH, SEEN_CELL, seen)
+    return seen
 
 
 def combined_pull(pulls):
@@ -952,7 +1038,8 @@ def combined_pull(pulls):
     return total, weighted / np.where(total > 0, total, 1.0)[:, None]
 
 
-def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings, pulls=()):
+def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings, pulls=(),
+             viewpoint=None):
     """Gauss-Newton on one frame's pose.
 
     Args:
@@ -960,6 +1047,8 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         cloud: (P, 3) float64 points; cloud_grid: theirs (``nearest.build_grid``).
         local, root: the start, (J, 3, 3) and (3,).
         pulls: ((weight: a number or per joint (J,), goal joints (J, 3)), ...).
+        viewpoint: None, or the (3,) camera that saw the cloud (metres): the model -> cloud
+            term then pairs only the model points it would see (``seen_points``).
     Returns:
         local, root, joints (J, 3), cost: the mean truncated distance cloud -> model plus
         ``model_to_cloud`` times model -> cloud (metres, ``surface_terms``), measured before
@@ -976,7 +1065,7 @@ def fit_pose(model, rest, tpose_joints, cloud, cloud_grid, local, root, settings
         cloud_grid.cell, cloud_grid.dims,
         cloud_grid.order, cloud_grid.starts, float(settings.robust_width),
         float(settings.model_to_cloud), int(settings.model_stride), pull_weight, pull_goal,
-        local, root, joints)
+        None if viewpoint is None else np.asarray(viewpoint, np.float64), local, root, joints)
     return local, root, joints, cost
 
 
@@ -991,16 +1080,16 @@ def shape_rows(model, rotations, model_index, normals):
 
 def fit_shape(model, shape, frames, settings, width):
     """One Gauss-Newton step on the shape coefficients over frames ((cloud, its grid, local,
-    root), ...) at robust width ``width``; a faint ridge keeps unobserved coefficients near
-    the mean."""
+    root, viewpoint: None or (3,)), ...) at robust width ``width``; a faint ridge keeps
+    unobserved coefficients near the mean."""
     hessian = 1e-7 * np.eye(len(shape))
     gradient = 1e-7 * shape
     rest, tpose_joints = shaped(model, shape)
     settings = settings._replace(robust_width=width)
-    for cloud, grid, local, root in frames:
+    for cloud, grid, local, root, viewpoint in frames:
         rotations, joints = forward(local, root, tpose_joints)
         posed = pose_model(model, rest, tpose_joints, rotations, joints)
-        index, targets, weights, _ = surface_terms(posed, cloud, grid, settings)
+        index, targets, weights, _ = surface_terms(posed, cloud, grid, settings, viewpoint)
         normals = posed.normals[index]
         along = shape_rows(model, rotations, index, normals) * np.sqrt(weights)[:, None]
         distance = np.einsum("na,na->n", normals, posed.points[index] - targets)
@@ -1015,7 +1104,8 @@ def settle_shape(model, shape, frames, settings):
     for _ in range(settings.settle_rounds):
         rest, tpose_joints = shaped(model, shape)
         frames = [(cloud, grid, *fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
-                                          settings)[:2]) for cloud, grid, local, root in frames]
+                                          settings, viewpoint=viewpoint)[:2], viewpoint)
+                  for cloud, grid, local, root, viewpoint in frames]
         shape = fit_shape(model, shape, frames, settings, settings.robust_width)
     return shape
 
@@ -1052,9 +1142,18 @@ def reading_weight(settings, misread):
     return settings.reading_pull / (1.0 + ratio * ratio) ** 2
 
 
-def start_fit(model, settings, cloud, reading):
+def _depth_from(reading, predicted, viewpoint):
+    """SKR's reading (J, 3) with each joint's depth along its ray from ``viewpoint`` (3,)
+    taken from ``predicted`` (J, 3): what one view says of a joint is across its ray."""
+    rays = reading - viewpoint
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return reading + np.einsum("ja,ja->j", predicted - reading, rays)[:, None] * rays
+
+
+def start_fit(model, settings, cloud, reading, viewpoint=None):
     """The first frame: shape and pose in alternation, from the mean body on SKR's reading
-    -> FitState, joints (J, 3)."""
+    -> FitState, joints (J, 3). ``viewpoint``: None, or the (3,) camera that saw the cloud
+    (``fit_frame``)."""
     cloud = subsample(cloud, settings.cloud_points, 0, settings.draw)
     reading = np.asarray(reading, np.float64)
     grid = build_grid(cloud)
@@ -1064,41 +1163,48 @@ def start_fit(model, settings, cloud, reading):
     for width in CALIBRATION_WIDTHS:
         local, root, _, _ = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
                                      settings._replace(robust_width=width),
-                                     ((settings.reading_pull, reading),))
-        shape = fit_shape(model, shape, [(cloud, grid, local, root)], settings, width)
+                                     ((settings.reading_pull, reading),), viewpoint)
+        shape = fit_shape(model, shape, [(cloud, grid, local, root, viewpoint)], settings,
+                          width)
         rest, tpose_joints = shaped(model, shape)
     local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
-                                         settings, ((settings.reading_pull, reading),))
+                                         settings, ((settings.reading_pull, reading),),
+                                         viewpoint)
     state = FitState(1, shape, local, root, np.stack([joints, joints]),
-                     ((cloud, grid, local, root),), cost)
+                     ((cloud, grid, local, root, viewpoint),), cost)
     return state, joints
 
 
-def _settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local, root, joints,
-            cost):
+def _settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, pulls, local,
+            root, joints, cost):
     """A start that won its race, fitted on: a lost lower leg looked for, then the steps the
     race left (``fit_frame``) -> local, root, joints, cost. On a stray frame every aimed start
     that beat the race's winner is settled too (each aimed from the winner alone, not one
     after another), so the lost-leg check runs once per start."""
     if settings.lost_leg_width > 0 and (lost_legs(
-            model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance).max()
-            > settings.lost_leg_share):
+            model, rest, tpose_joints, local, root, grid, settings.lost_leg_distance,
+            viewpoint).max() > settings.lost_leg_share):
         # A shin in empty space (a kick neither start followed): the robust terms no longer
         # reach its cloud, and SKR's reading, as lost there, holds it. Steps at a wider width
         # without the reading's pull reach out for it.
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,
-            race._replace(robust_width=settings.lost_leg_width), pulls[1:])
+            race._replace(robust_width=settings.lost_leg_width), pulls[1:], viewpoint)
     if settings.iterations > race.iterations:          # the better start goes on
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,
-            settings._replace(iterations=settings.iterations - race.iterations), pulls)
+            settings._replace(iterations=settings.iterations - race.iterations), pulls,
+            viewpoint)
     return local, root, joints, cost
 
 
-def fit_frame(model, settings, state, cloud, reading):
+def fit_frame(model, settings, state, cloud, reading, viewpoint=None):
     """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
-    from SKR's reading (or from it with its legs swapped) won."""
+    from SKR's reading (or from it with its legs swapped) won. ``viewpoint``: None (the cloud
+    covers the body), or the (3,) world position of the one depth camera that saw it: the
+    model's points it would not see are not pulled to the cloud, and the reading's pull
+    leaves the joints' depth along their rays to the motion (SKR, trained on whole bodies,
+    reads one side's joints towards the camera)."""
     t = state.frames
     cloud = subsample(cloud, settings.cloud_points, t, settings.draw)
     reading = np.asarray(reading, np.float64)
@@ -1110,18 +1216,20 @@ def fit_frame(model, settings, state, cloud, reading):
     # the reading's joints are then weighed against the held pose.
     moving = state.cost <= LOST_COST
     predicted = last + 0.5 * (last - before) if moving else last
+    if viewpoint is not None:
+        reading = _depth_from(reading, predicted, viewpoint)
     misread = np.linalg.norm(reading - predicted, axis=1)        # (J,) metres
     pulls = ((reading_weight(settings, misread), reading),)
     if moving:
         pulls += ((settings.motion_pull, predicted),)
     race = settings._replace(iterations=min(settings.race_iterations, settings.iterations))
     local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, state.local,
-                                         state.root, race, pulls)
+                                         state.root, race, pulls, viewpoint)
     reseeded = False
     if np.linalg.norm(joints - reading, axis=1).mean() > settings.reseed_distance:
         fresh = fit_pose(model, rest, tpose_joints, cloud, grid,
                          local_from_joints(reading, tpose_joints), reading[0].copy(), race,
-                         pulls)
+                         pulls, viewpoint)
         if fresh[3] < cost:
             (local, root, joints, cost), reseeded = fresh, True
     if ((settings.swap_legs_cost > 0 and cost > settings.swap_legs_cost)
@@ -1136,7 +1244,7 @@ def fit_frame(model, settings, state, cloud, reading):
                           swapped),) + pulls[1:]
         other = fit_pose(model, rest, tpose_joints, cloud, grid,
                          local_from_joints(swapped, tpose_joints), swapped[0].copy(), race,
-                         swapped_pulls)
+                         swapped_pulls, viewpoint)
         if other[3] < cost:
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
     starts = [(local, root, joints, cost)]
@@ -1153,29 +1261,29 @@ def fit_frame(model, settings, state, cloud, reading):
                 aimed = aim_bone(local, root, tpose_joints, joint, strays)
                 if aimed is not None:
                     other = fit_pose(model, rest, tpose_joints, cloud, grid, aimed, root, race,
-                                     pulls)
+                                     pulls, viewpoint)
                     if other[3] < cost:
                         starts.append(other)
-    settled = [_settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, *start)
-               for start in starts]
+    settled = [_settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race,
+                       pulls, *start) for start in starts]
     chosen = min(range(len(settled)), key=lambda index: settled[index][3])
     local, root, joints, cost = settled[chosen]
     if settings.more_iterations > 0 and starts[chosen][3] - cost > settings.still_falling:
         # Its cost still fell fast: the fit has not converged (a fast limb); steps more.
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,
-            settings._replace(iterations=settings.more_iterations), pulls)
+            settings._replace(iterations=settings.more_iterations), pulls, viewpoint)
     if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
         return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration
     if t < settings.calibration_frames:
-        calibration = calibration + ((cloud, grid, local, root),)
+        calibration = calibration + ((cloud, grid, local, root, viewpoint),)
         shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
         if t == settings.calibration_frames - 1:
             shape = settle_shape(model, shape, calibration, settings)
             rest, tpose_joints = shaped(model, shape)
             local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid,
-                                                 local, root, settings, pulls)
+                                                 local, root, settings, pulls, viewpoint)
     elif calibration:
         calibration = ()                 # calibrated: the clouds are no longer needed
     return (FitState(t + 1, shape, local, root, np.stack([last if moving else joints, joints]),
@@ -1195,7 +1303,10 @@ def fit_state_arrays(state):
             "calibration_counts": np.array([len(frame[0]) for frame in calibration], np.int64),
             "calibration_local": np.array([frame[2] for frame in calibration]).reshape(
                 -1, NUM_JOINTS, 3, 3),
-            "calibration_root": np.array([frame[3] for frame in calibration]).reshape(-1, 3)}
+            "calibration_root": np.array([frame[3] for frame in calibration]).reshape(-1, 3),
+            "calibration_viewpoints": np.array(     # nan: a whole cloud, no camera
+                [np.full(3, np.nan) if frame[4] is None else frame[4] for frame in calibration]
+            ).reshape(-1, 3)}
 
 
 def fit_state_from_arrays(arrays, model):
@@ -1208,27 +1319,35 @@ def fit_state_from_arrays(arrays, model):
     counts = np.asarray(arrays["calibration_counts"], np.int64)
     clouds = np.split(np.asarray(arrays["calibration_points"], np.float64),
                       np.cumsum(counts)[:-1]) if len(counts) else []
+    # Checkpoints from before single views have no viewpoints: whole clouds.
+    viewpoints = (arrays["calibration_viewpoints"] if "calibration_viewpoints" in arrays
+                  else np.full((len(counts), 3), np.nan))
     calibration = tuple((cloud, build_grid(cloud), np.asarray(local, np.float64),
-                         np.asarray(root, np.float64))
-                        for cloud, local, root in zip(clouds, arrays["calibration_local"],
-                                                      arrays["calibration_root"]))
+                         np.asarray(root, np.float64),
+                         None if np.isnan(viewpoint).any() else np.asarray(viewpoint, np.float64))
+                        for cloud, local, root, viewpoint in zip(
+                            clouds, arrays["calibration_local"], arrays["calibration_root"],
+                            viewpoints))
     return FitState(int(arrays["frames"]), *(np.asarray(arrays[key], np.float64)
                                              for key in ("shape", "local", "root", "joints")),
                     calibration, float(arrays["cost"]))
 
 
-def track(model, settings, clouds, readings):
+def track(model, settings, clouds, readings, viewpoints=None):
     """A whole stream, online (frame t sees frames <= t only): clouds (T, P, 3) (or any
-    iterable of (P, 3)), SKR's readings (T, J, 3) -> fitted joints (T, J, 3) float32, and
-    which frames the fit from the reading won (T,) bool."""
+    iterable of (P, 3)), SKR's readings (T, J, 3), and the cameras that saw them (T, 3) (None:
+    whole clouds) -> fitted joints (T, J, 3) float32, and which frames the fit from the
+    reading won (T,) bool."""
     fitted, reseeded = [], []
     state = None
-    for cloud, reading in zip(clouds, readings):
+    if viewpoints is None:
+        viewpoints = [None] * len(readings)
+    for cloud, reading, viewpoint in zip(clouds, readings, viewpoints):
         if state is None:
-            state, joints = start_fit(model, settings, cloud, reading)
+            state, joints = start_fit(model, settings, cloud, reading, viewpoint)
             won = True
         else:
-            state, joints, won = fit_frame(model, settings, state, cloud, reading)
+            state, joints, won = fit_frame(model, settings, state, cloud, reading, viewpoint)
         fitted.append(joints)
         reseeded.append(won)
     return np.asarray(fitted, np.float32), np.asarray(reseeded)

@@ -25,6 +25,11 @@ from .validation import as_float32_array, as_point_cloud, as_workers, check_body
 from .weights import Weights, load_weights
 
 
+# Metres: a viewpoint nearer the cloud's centre than this is inside the body, or in another
+# frame or unit than the points.
+MIN_VIEW_DISTANCE = 0.3
+
+
 class Target(NamedTuple):
     """What is computed once per target body."""
     points: np.ndarray          # (V, 3) float32 T-pose points, metres
@@ -200,13 +205,35 @@ class Retargeter:
         self._state = None if state is None else check_stream_state(self._stages, state)
         self._owner = threading.get_ident()
 
-    def step(self, points: ArrayLike) -> RetargetedFrame:
-        """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame."""
+    def step(self, points: ArrayLike, viewpoint: ArrayLike | None = None) -> RetargetedFrame:
+        """Retarget one source frame: (P, 3) points, metres, any order -> RetargetedFrame.
+
+        ``viewpoint``: where the one depth camera that saw the cloud stands, (3,) metres, in
+        the points' frame (a depth sensor's own points: its origin, moved as the points were),
+        or None for a cloud over the whole body. The source fit then fits only the side of
+        its body model that the camera sees (docs/single_view.md); a pipeline without the fit
+        refuses it."""
         self._require_target("step")
         points = as_point_cloud(points, "source points", MIN_POINTS)
+        if viewpoint is not None:
+            viewpoint = self._checked_viewpoint(viewpoint, points)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
-        return self._step(points, None)
+        return self._step(points, None, viewpoint)
+
+    def _checked_viewpoint(self, viewpoint, points):
+        if self.config.fit_source is None:
+            raise ValueError(f"a viewpoint is read by the source fit only, and this pipeline "
+                             f"({self.config.preset_name() or 'custom'}) has none: use the "
+                             "'fitted' preset, or give no viewpoint")
+        viewpoint = as_float32_array(viewpoint, "viewpoint", (3,))
+        distance = float(np.linalg.norm(viewpoint - points.mean(axis=0)))
+        if distance < MIN_VIEW_DISTANCE:
+            raise ValueError(f"viewpoint {viewpoint.tolist()} is {distance:.2f} m from the "
+                             f"cloud's centre: a camera that sees a body stands at least "
+                             f"{MIN_VIEW_DISTANCE} m from it (is it in the points' frame and "
+                             "units?)")
+        return viewpoint
 
     def step_skeleton(self, source_joints: ArrayLike,
                       points: ArrayLike | None = None) -> RetargetedFrame:
@@ -223,9 +250,10 @@ class Retargeter:
             check_body(source_joints, "source joints, frame 0")
         return self._step(points, source_joints)
 
-    def _step(self, points, joints):
+    def _step(self, points, joints, viewpoint=None):
         """One checked frame down every stage -> RetargetedFrame."""
-        frame = self._fold(Frame(self._frame(), points, joints), self._stages)
+        frame = self._fold(Frame(self._frame(), points, joints, viewpoint=viewpoint),
+                           self._stages)
         # A copy: a stage's state may hold the joints, which must not change if the caller
         # edits the frame's.
         return RetargetedFrame(frame.vertices, frame.posed_joints, frame.rotations,

@@ -50,6 +50,8 @@ class Frame(NamedTuple):
     posed_joints: np.ndarray | None = None  # (J, 3) float32 the target's joints (FK), metres
     global_rotations: np.ndarray | None = None   # (J, 3, 3) float32 their world rotations
     vertices: np.ndarray | None = None      # (V, 3) float32 the target's points, posed
+    viewpoint: np.ndarray | None = None     # (3,) float32 the one camera that saw the cloud,
+                                            # metres (None: it covers the body)
 
 
 class StreamState(NamedTuple):
@@ -158,10 +160,11 @@ class SourceFit(Stage):
         if frame.points is None:
             return state, frame
         if state is None:
-            state, joints = start_fit(body_model(), self.settings, frame.points, frame.joints)
+            state, joints = start_fit(body_model(), self.settings, frame.points, frame.joints,
+                                      frame.viewpoint)
         else:
             state, joints, _ = fit_frame(body_model(), self.settings, state, frame.points,
-                                         frame.joints)
+                                         frame.joints, frame.viewpoint)
         if state.cost > LOST_COST and self.warn:
             warnings.warn(f"frame {frame.index}: the source fit found no body in this cloud "
                           f"(mean distance {100 * state.cost:.1f} cm); it holds the last "

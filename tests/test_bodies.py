@@ -192,10 +192,24 @@ def test_body_command_writes_a_t_pose_target(tmp_path, capsys):
 
 
 def test_the_shipped_bodies_are_the_listed_phenotypes(tmp_path):
-    """minretarget/data/bodies.npz is what ``python -m training.data bodies`` writes."""
+    """minretarget/data/bodies.npz is what ``python -m training.data bodies`` writes: exactly,
+    but for rounding. Torch's CPU kernels differ by machine (1e-18 m on points 1e-19 m from
+    zero), and anny splits each quad of its mesh along the shorter diagonal, so a square quad
+    may be split along the other one: the same quads (each two consecutive triangles' four
+    corners), split either way."""
     from minretarget.bodies import BODIES
     from training.data.sample import build_bodies
     arrays = build_bodies(cache_dir=tmp_path)
     with np.load(BODIES, allow_pickle=False) as shipped:
         for key, array in arrays.items():
-            np.testing.assert_array_equal(shipped[key], array, err_msg=key)
+            if key == "vertices":
+                np.testing.assert_allclose(shipped[key], array, rtol=0, atol=1e-7, err_msg=key)
+            elif key == "faces":
+                assert shipped[key].shape == array.shape
+                differ = np.nonzero((shipped[key] != array).any(axis=1))[0]
+                assert len(differ) <= 0.01 * len(array)
+                for row in np.unique(differ // 2 * 2):
+                    assert (set(shipped[key][row:row + 2].ravel())
+                            == set(array[row:row + 2].ravel())), f"faces {row}, {row + 1}"
+            else:
+                np.testing.assert_array_equal(shipped[key], array, err_msg=key)

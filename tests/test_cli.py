@@ -733,3 +733,45 @@ def test_shipped_bodies_are_listed_and_taken_by_name(inputs, tmp_path, capsys):
     assert run("retarget", inputs["dir"] / "frames.npy", "chlid", "--out", tmp_path / "x",
                "--weights", WEIGHTS) == 1
     assert "chlid: no such file, nor a shipped body (child, " in capsys.readouterr().err
+
+
+def test_viewpoint_is_the_api_s_in_the_source_s_units(inputs, tmp_path, capsys):
+    """--viewpoint X,Y,Z, in the source's units and axes as its points are, is
+    ``Retargeter.step``'s viewpoint in canonical metres; the fitted preset (the default)."""
+    centimetres = make_space("cm", "y")
+    frames = inputs["frames"].astype(np.float64) * 100
+    camera = frames[0].mean(axis=0) + [30.0, 20.0, 250.0]
+    np.save(tmp_path / "cm.npy", frames.astype(np.float32))
+    results = {}
+    for options in ((), ("--viewpoint", ",".join(f"{v:.9g}" for v in camera))):
+        out = tmp_path / f"out{len(options)}"
+        assert run("retarget", tmp_path / "cm.npy", inputs["dir"] / "target.ply", "--out", out,
+                   "--format", "npz", "--weights", WEIGHTS, "--source-units", "cm",
+                   *options) == 0
+        results[len(options)] = load(out / "result.npz")
+    retargeter = Retargeter.from_weights(WEIGHTS)
+    retargeter.set_target(inputs["target"], inputs["faces"])
+    viewpoint = to_canonical(np.array([f"{v:.9g}" for v in camera], np.float64), centimetres)
+    expected = [retargeter.step(to_canonical(frame.astype(np.float32), centimetres), viewpoint)
+                for frame in frames]
+    np.testing.assert_allclose(results[2]["vertices"], [f.vertices for f in expected],
+                               atol=1e-5)
+    assert np.abs(results[2]["source_joints"] - results[0]["source_joints"]).max() > 1e-4
+
+
+@pytest.mark.parametrize("options, source, message", [
+    (("--viewpoint", "0,1,2.5", "--preset", "regressed"), "frames.npy",
+     "--viewpoint is read by the source fit, which --preset regressed does not run"),
+    (("--viewpoint", "0,1,2.5", "--force"), "result.bvh", "and this source is a skeleton"),
+    (("--viewpoint", "0,1"), "frames.npy", "--viewpoint: must be three numbers X,Y,Z"),
+    (("--viewpoint", "0,1,nan"), "frames.npy", "--viewpoint: must be three numbers X,Y,Z")])
+def test_viewpoint_refuses_what_cannot_use_it(inputs, folder_run, tmp_path, capsys, options,
+                                              source, message):
+    source = folder_run / source if source.endswith(".bvh") else inputs["dir"] / source
+    try:
+        code = run("retarget", source, inputs["dir"] / "target.ply", "--out",
+                   tmp_path / "o", "--weights", WEIGHTS, *options)
+    except SystemExit as exit_:
+        code = exit_.code
+    assert code in (1, 2) and message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -239,13 +239,18 @@ def surface_arguments(model, seed, stride=1):
     return rest, tpose, local, root, posed, cloud, settings
 
 
-@pytest.mark.parametrize("stride", [1, 3])
-def test_surface_terms_summed_per_model_point_give_the_pairs_normal_equations(model, stride):
+@pytest.mark.parametrize("stride, viewpoint", [(1, None), (3, None), (1, (0.4, 1.3, 2.6)),
+                                               (3, (-2.5, 1.0, 0.3))])
+def test_surface_terms_summed_per_model_point_give_the_pairs_normal_equations(model, stride,
+                                                                              viewpoint):
     _, _, _, _, posed, cloud, settings = surface_arguments(model, 15, stride)
-    index, targets, weights, cost = fit.surface_terms(posed, cloud, build_grid(cloud), settings)
+    index, targets, weights, cost = fit.surface_terms(posed, cloud, build_grid(cloud), settings,
+                                                      viewpoint)
     assert len(np.unique(index)) == len(index)                 # one row per model point
+    seen = None if viewpoint is None else twins.seen_points(
+        posed.points, posed.normals, np.array(viewpoint), fit.HIDDEN_DEPTH, fit.SEEN_CELL)
     pairs = twins.surface_pairs(posed.points, cloud, settings.robust_width,
-                                settings.model_to_cloud, stride, fit.TRUNCATE)
+                                settings.model_to_cloud, stride, fit.TRUNCATE, seen)
     assert cost == pytest.approx(pairs[3], abs=1e-12)
     got = twins.plane_normal_equations(index, targets, weights, *dense(posed))
     want = twins.plane_normal_equations(*pairs[:3], *dense(posed))
@@ -325,6 +330,85 @@ def test_lost_legs_matches_its_twin(model):
     own = fit.pose_model(model, rest, tpose, rotations, joints).points
     np.testing.assert_array_equal(
         fit.lost_legs(model, rest, tpose, local, root, build_grid(own), 0.02), [0, 0])
+
+
+VIEWPOINTS = ((0.1, 1.2, 2.5), (2.5, 1.3, -0.2), (0.3, 1.0, -2.4), (1.5, 2.0, 1.5))
+
+
+@pytest.mark.parametrize("viewpoint", VIEWPOINTS)
+def test_seen_points_match_their_twin(model, viewpoint):
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=21, turn=0.4)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    got = fit.seen_points(posed, viewpoint)
+    want = twins.seen_points(posed.points, posed.normals, np.array(viewpoint),
+                             fit.HIDDEN_DEPTH, fit.SEEN_CELL)
+    np.testing.assert_array_equal(got, want)
+    assert 0.2 < got.mean() < 0.6                          # about one side of the body
+    assert fit.seen_points(posed, None).all()              # a whole cloud: every point
+
+
+def test_a_camera_at_one_side_sees_that_side_and_not_the_arm_behind_the_body(model):
+    from minretarget.conventions import JOINT_INDEX
+    rest, tpose = fit.shaped(model, np.zeros(len(model.points_basis)))
+    rotations, joints = fit.forward(np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), tpose[0], tpose)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    heaviest = model.bone_index[np.arange(len(rest)), model.bone_weight.argmax(axis=1)]
+    chest = joints[JOINT_INDEX["spine3"]]
+    front = fit.seen_points(posed, chest + (0, 0, 2.5))          # the T-pose faces +Z
+    assert not front[posed.normals[:, 2] < -0.5].any()          # its back
+    assert front[posed.normals[:, 2] > 0.5].mean() > 0.8         # its front, but what hides
+    left = fit.seen_points(posed, chest + (2.5, 0, 0))           # its left arm points at +X
+    assert left[heaviest == JOINT_INDEX["left_wrist"]].mean() > 0.4
+    for hidden in ("right_wrist", "right_elbow"):                # behind the left arm, chest
+        assert not left[heaviest == JOINT_INDEX[hidden]].any()
+
+
+def test_lost_legs_from_one_camera_count_only_what_it_sees(model):
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=11, turn=0.5)
+    *_, other_rotations, other_joints = posed_state(model, seed=12, turn=0.5)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    cloud = fit.pose_model(model, rest, tpose, other_rotations, other_joints).points[::2]
+    viewpoint = np.array([0.5, 1.0, 2.5])
+    seen = twins.seen_points(posed.points, posed.normals, viewpoint, fit.HIDDEN_DEPTH,
+                             fit.SEEN_CELL)
+    got = fit.lost_legs(model, rest, tpose, local, root, build_grid(cloud), 0.02, viewpoint)
+    want = twins.lost_legs(model, rest, tpose, rotations, joints, cloud, 0.02, seen)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    # the back of a shin seen from the front is far from a cloud of its front: not lost
+    front = posed.points[seen]
+    np.testing.assert_array_equal(
+        fit.lost_legs(model, rest, tpose, local, root, build_grid(front), 0.02, viewpoint),
+        [0, 0])
+    assert fit.lost_legs(model, rest, tpose, local, root, build_grid(front), 0.02).max() > 0.2
+
+
+def test_a_fit_told_the_camera_is_not_drawn_onto_the_side_it_sees(model):
+    """A cloud of what one camera sees of the model, the fit started 5 cm towards the camera:
+    told the viewpoint, it goes back to the pose; not told, the model's unseen back is pulled
+    onto the seen front and the body stays nearer the camera."""
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=7, turn=0.2)
+    viewpoint = joints[0] + np.array([0.3, 0.4, 2.5])
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    cloud = posed.points[fit.seen_points(posed, viewpoint)]
+    towards = (viewpoint - joints[0]) / np.linalg.norm(viewpoint - joints[0])
+    settings = fit.FitSettings(iterations=12, reading_pull=0, motion_pull=0)
+    errors = {}
+    for told in (viewpoint, None):
+        *_, found, _ = fit.fit_pose(model, rest, tpose, cloud, build_grid(cloud), local,
+                                    root + 0.05 * towards, settings, viewpoint=told)
+        errors[told is None] = np.linalg.norm(found - joints, axis=1).mean()
+    assert errors[False] < 0.005
+    assert errors[True] > 2 * errors[False]
+
+
+def test_depth_from_the_motion_keeps_the_reading_across_its_ray():
+    viewpoint = np.array([0.0, 1.0, 3.0])
+    reading = np.array([[0.0, 1.0, 1.0], [0.5, 1.0, 1.0]])
+    predicted = np.array([[0.1, 1.2, 0.5], [0.5, 1.0, 1.0]])
+    got = fit._depth_from(reading, predicted, viewpoint)
+    # the first joint's ray is the -Z axis: its depth is the prediction's, the rest the reading's
+    np.testing.assert_allclose(got[0], [0.0, 1.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(got[1], reading[1], atol=1e-12)      # the same point: unmoved
 
 
 def turned(axis, angle):
@@ -518,8 +602,8 @@ def test_the_lowest_settled_cost_wins_not_the_lowest_race_cost(model, monkeypatc
         raised_leg(start, "right", -1.4, 1.4), root, tpose)).points
     settled = []
 
-    def reversed_settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local,
-                        root, joints, cost):
+    def reversed_settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, pulls,
+                        local, root, joints, cost):
         settled.append((cost, joints))
         # below LOST_COST, so that the frame is kept
         return local, root, joints, 0.05 if len(settled) == 1 else 0.04 - cost
@@ -575,8 +659,8 @@ def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
     for fall, steps in ((0.002, False), (0.005, True)):
         race_costs.clear()
 
-        def settle(model, settings, rest, tpose_joints, cloud, grid, race, pulls, local, root,
-                   joints, cost):
+        def settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, pulls,
+                   local, root, joints, cost):
             race_costs.append(cost)
             return local, root, joints, 0.05 if len(race_costs) == 1 else cost - fall
         monkeypatch.setattr(fit, "_settle", settle)
@@ -806,6 +890,61 @@ def test_fit_state_set_back_continues_the_stream_exactly(sample_clouds):
     # without a cloud there is nothing to fit: the skeleton given is handed on
     given = first.skeleton(clouds[4])
     np.testing.assert_array_equal(second.step_skeleton(given).source_joints, given)
+
+
+def test_a_stream_told_its_camera_is_set_back_and_goes_on_exactly(sample_clouds):
+    """The viewpoints of the calibration's frames go into the fit's state (and a checkpoint's
+    arrays) and back; a stream told its camera differs from one that is not."""
+    from minretarget.retargeter import Retargeter
+    from minretarget.weights import load_weights
+    clouds, target = sample_clouds
+    config = PipelineConfig(smoothing=None, denoise=False, foot_lock=None,
+                            fit_source=fit.FitSettings(calibration_frames=3, settle_rounds=1))
+    first, second, untold = (Retargeter(load_weights(), config) for _ in range(3))
+    for retargeter in (first, second, untold):
+        retargeter.set_target(target)
+    camera = clouds[0].mean(axis=0) + np.array([0.5, 0.3, 2.5], np.float32)
+    # what that camera would see: the points facing it, roughly (the half nearer to it)
+    seen = [cloud[np.linalg.norm(cloud - camera, axis=1)
+                  < np.median(np.linalg.norm(cloud - camera, axis=1))] for cloud in clouds]
+    for points in seen[:2]:
+        first.step(points, camera)
+        untold.step(points)
+    state = first.state.stages["source_fit"]
+    assert len(state.calibration) == 2
+    np.testing.assert_array_equal(state.calibration[1][4], camera)
+    back = fit.fit_state_from_arrays(fit.fit_state_arrays(state), fit.body_model())
+    np.testing.assert_array_equal(back.calibration[1][4], camera)
+    second.state = first.state
+    np.testing.assert_array_equal(second.step(seen[2], camera).joints,
+                                  first.step(seen[2], camera).joints)
+    assert np.abs(first.step(seen[3], camera).source_joints
+                  - untold.step(seen[3]).source_joints).max() > 1e-3
+    # a checkpoint from before viewpoints (no such array) is whole clouds
+    arrays = fit.fit_state_arrays(untold.state.stages["source_fit"])
+    del arrays["calibration_viewpoints"]
+    assert all(frame[4] is None for frame in fit.fit_state_from_arrays(
+        arrays, fit.body_model()).calibration)
+
+
+def test_a_viewpoint_is_refused_where_it_cannot_be_used(sample_clouds, tiny_weights):
+    from minretarget.retargeter import Retargeter
+    from minretarget.weights import load_weights
+    clouds, target = sample_clouds
+    regressed = Retargeter(tiny_weights, "regressed")
+    regressed.set_target(target)
+    with pytest.raises(ValueError, match="read by the source fit only.*regressed"):
+        regressed.step(clouds[0], (0.0, 1.0, 3.0))
+    fitted = Retargeter(load_weights(), "fitted")
+    fitted.set_target(target)
+    centre = clouds[0].mean(axis=0)
+    with pytest.raises(ValueError, match=r"0.10 m from the cloud's centre"):
+        fitted.step(clouds[0], centre + (0.1, 0.0, 0.0))
+    with pytest.raises(ValueError, match="viewpoint"):
+        fitted.step(clouds[0], (0.0, 1.0))
+    with pytest.raises(ValueError, match="viewpoint"):
+        fitted.step(clouds[0], (0.0, np.nan, 3.0))
+    assert fitted.state is None                      # nothing of the stream was changed
 
 
 def test_a_cloud_without_the_body_is_warned_of_by_frame_and_recovered_from(sample_clouds):

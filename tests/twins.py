@@ -338,30 +338,37 @@ def body_model_pose(model, rest, tpose, rotations, joints):
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True), lever, reach
 
 
-def lost_legs(model, rest, tpose, rotations, joints, cloud, far):
+def lost_legs(model, rest, tpose, rotations, joints, cloud, far, seen=None):
     """The source fit's lost lower legs (minretarget.fit.lost_legs) by brute force: per leg
     (left, right), the share of the model points whose heaviest bone is its knee, ankle or
-    foot that lie farther than ``far`` from every cloud point -> (2,)."""
+    foot (and that are ``seen`` (Q,) bool, if given) that lie farther than ``far`` from every
+    cloud point -> (2,)."""
     from minretarget.conventions import JOINT_INDEX
     points = body_model_pose(model, rest, tpose, rotations, joints)[0]
+    seen = np.ones(len(points), bool) if seen is None else seen
     heaviest = model.bone_index[np.arange(len(rest)), model.bone_weight.argmax(axis=1)]
     distance = np.linalg.norm(points[:, None] - cloud[None], axis=-1).min(axis=1)
     shares = []
     for side in ("left", "right"):
-        leg = np.isin(heaviest, [JOINT_INDEX[f"{side}_{j}"] for j in ("knee", "ankle", "foot")])
+        leg = seen & np.isin(heaviest, [JOINT_INDEX[f"{side}_{j}"]
+                                        for j in ("knee", "ankle", "foot")])
         shares.append(float((distance[leg] > far).mean()))
     return np.array(shares)
 
 
-def surface_pairs(posed_points, cloud, robust_width, model_to_cloud, model_stride, truncate):
+def surface_pairs(posed_points, cloud, robust_width, model_to_cloud, model_stride, truncate,
+                  seen=None):
     """The source fit's pairs (minretarget.fit.surface_terms) one by one, before they are
     summed per model point: each cloud point with its nearest model point, each
-    ``model_stride``-th model point with its nearest cloud point (brute force), Geman-McClure
-    weights -> model index (N,), targets (N, 3), weights (N,), cost."""
+    ``model_stride``-th model point (of those ``seen`` (Q,) bool, if given) with its nearest
+    cloud point (brute force), Geman-McClure weights -> model index (N,), targets (N, 3),
+    weights (N,), cost."""
     inward = np.linalg.norm(cloud[:, None] - posed_points[None], axis=-1)          # (P, Q)
     inward_index = inward.argmin(axis=1)
     inward_distance = inward.min(axis=1)
     outward_index = np.arange(0, len(posed_points), model_stride)
+    if seen is not None:
+        outward_index = outward_index[seen[outward_index]]
     outward = np.linalg.norm(posed_points[outward_index, None] - cloud[None], axis=-1)
     outward_nearest = outward.argmin(axis=1)
     outward_distance = outward.min(axis=1)
@@ -404,3 +411,27 @@ def joint_pull_rows(joints, goal, weight):
             j = PARENTS[j]
     scale = np.repeat(np.sqrt(np.broadcast_to(weight, (count,)) / count), 3)
     return scale[:, None] * rows.reshape(count * 3, -1), scale * (joints - goal).ravel()
+
+
+def seen_points(points, normals, viewpoint, hidden_depth, cell):
+    """The source fit's model points a camera at ``viewpoint`` sees (minretarget.fit's
+    ``_seen_kernel``) by brute force: facing it, in front of it, and no point in the 3 x 3
+    cells of a perspective image around its own (``cell`` metres at the points' centre) more
+    than ``hidden_depth`` nearer along the view -> (Q,) bool."""
+    axis = points.mean(axis=0) - viewpoint
+    distance = np.linalg.norm(axis)
+    axis = axis / distance
+    right = np.cross(axis, np.eye(3)[np.argmin(np.abs(axis))])
+    right /= np.linalg.norm(right)
+    up = np.cross(axis, right)
+    rays = points - viewpoint
+    depth = rays @ axis
+    scale = distance / np.maximum(depth, 1e-6)
+    across, along = scale * (rays @ right), scale * (rays @ up)
+    column = ((across - across.min()) / cell).astype(np.int64)
+    row = ((along - along.min()) / cell).astype(np.int64)
+    near = ((np.abs(column[:, None] - column[None]) <= 1)
+            & (np.abs(row[:, None] - row[None]) <= 1))
+    nearest = np.where(near, depth[None], np.inf).min(axis=1)
+    facing = np.einsum("qa,qa->q", normals, viewpoint - points) > 0
+    return facing & (depth > 0) & ~(nearest < depth - hidden_depth)
