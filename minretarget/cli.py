@@ -174,8 +174,11 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
         (out_dir / DEMO_MARK).write_text("minretarget demo: a later demo may replace this run\n")
     retargeter.state = state
     viewpoint = settings.get("viewpoint")
-    step = (retargeter.step_skeleton if source.kind != "points" else retargeter.step
-            if viewpoint is None else (lambda points: retargeter.step(points, viewpoint)))
+    if source.kind != "points":
+        step = retargeter.step_skeleton
+    else:
+        def step(points):
+            return retargeter.step(points, viewpoint)
     track = Track(out_dir / TRACK, start)
     # A resumed run's npz gets the first frames' vertices again from their saved rotations
     # and root, posed exactly as the interrupted run posed them.

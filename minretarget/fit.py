@@ -41,6 +41,11 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    cost still fell by more than ``still_falling`` from its race to its settling (the steps
    have not converged: a fast limb), ``more_iterations`` steps more. A cloud where the body
    is not found (``LOST_COST``) is skipped: the last pose is held through it.
+4. One camera. Given where the one depth camera that saw the cloud stands (``viewpoint``),
+   the model -> cloud term pairs only the model points it would see at each step's pose
+   (``seen_points``: facing it, not hidden behind the model itself), the lost-leg test counts
+   only those, and the reading's pull leaves each joint's depth along its ray to the motion
+   (SKR, trained on whole bodies, reads one side's joints towards the camera).
 
 Lengths are metres; the solver works in float64.
 """

@@ -393,3 +393,12 @@ def test_ray_writes_the_same_bytes(library, local_run, tmp_path):
         ray.shutdown()
     assert summary["engine"] == "ray" and summary["workers"] == 2
     assert files(tmp_path / "out") == files(local_run[0])
+
+
+def test_a_viewpoint_is_a_job_key_as_retarget_takes_it():
+    """``viewpoint = "X,Y,Z"`` is ``--viewpoint X,Y,Z``; a malformed one is named in a job's
+    terms."""
+    args = batch.parse_options("s.npy", "t.ply", "out", {"viewpoint": "-0.5,1.2,2.5"})
+    assert args.viewpoint == "-0.5,1.2,2.5"
+    with pytest.raises(ValueError, match="viewpoint.*must be three numbers X,Y,Z"):
+        batch.parse_options("s.npy", "t.ply", "out", {"viewpoint": "1,2"})
