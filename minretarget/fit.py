@@ -76,6 +76,9 @@ LOST_COST = 0.06
 # What one camera sees of the model (``_seen_kernel``): a point more than HIDDEN_DEPTH behind
 # the model's nearest surface along its ray, in cells SEEN_CELL wide, is hidden (metres).
 HIDDEN_DEPTH, SEEN_CELL = 0.08, 0.03
+# Metres: a model point nearer the camera's image plane than this (or behind it) is not seen,
+# and stays out of the image (a perspective image of it would be unbounded).
+NEAR_PLANE = 0.05
 # Robust widths (metres) of the first frame's rounds of pose and shape: wide first, so that a
 # body far from the mean is pulled in before it is fitted.
 CALIBRATION_WIDTHS = (0.2, 0.1, 0.07, 0.05, 0.03, 0.03, 0.03, 0.03)
@@ -532,10 +535,11 @@ def _surface_pairs_kernel(posed, cloud, cloud_origin, cloud_cell, cloud_dims, cl
 @kernel
 def _seen_kernel(posed, posed_normals, viewpoint, hidden_depth, cell, seen):
     """Which posed model points (Q, 3), unit normals (Q, 3), a camera at ``viewpoint`` (3,)
-    would see -> ``seen`` (Q,) bool: those facing it and not hidden behind the model's own
-    surface, i.e. no model point in the 3 x 3 cells around its ray (``cell`` metres wide at
-    the model's distance) more than ``hidden_depth`` nearer. A z-buffer of the model's own
-    points, as model-based depth trackers test their model's visibility."""
+    would see -> ``seen`` (Q,) bool: those in front of it (past ``NEAR_PLANE`` along the view
+    to the points' centre), facing it and not hidden behind the model's own surface, i.e. no
+    model point in the 3 x 3 cells around its ray (``cell`` metres wide at the model's
+    distance) more than ``hidden_depth`` nearer. A z-buffer of the model's own points, as
+    model-based depth trackers test their model's visibility."""
     count = posed.shape[0]
     centre = np.zeros(3)
     for q in range(count):
@@ -550,18 +554,27 @@ def _seen_kernel(posed, posed_normals, viewpoint, hidden_depth, cell, seen):
     right /= np.sqrt(right[0] ** 2 + right[1] ** 2 + right[2] ** 2)
     up = np.cross(axis, right)
     depth, across, along = np.empty(count), np.empty(count), np.empty(count)
+    low_x, low_y, high_x, high_y = np.inf, np.inf, -np.inf, -np.inf
     for q in range(count):
         ray = posed[q] - viewpoint
         depth[q] = ray[0] * axis[0] + ray[1] * axis[1] + ray[2] * axis[2]
-        scale = distance / max(depth[q], 1e-6)  # a perspective image, in metres at the model
+        if depth[q] <= NEAR_PLANE:
+            continue
+        scale = distance / depth[q]             # a perspective image, in metres at the model
         across[q] = scale * (ray[0] * right[0] + ray[1] * right[1] + ray[2] * right[2])
         along[q] = scale * (ray[0] * up[0] + ray[1] * up[1] + ray[2] * up[2])
-    low_x, low_y = across.min(), along.min()
-    width = int((across.max() - low_x) / cell) + 1
-    height = int((along.max() - low_y) / cell) + 1
+        low_x, high_x = min(low_x, across[q]), max(high_x, across[q])
+        low_y, high_y = min(low_y, along[q]), max(high_y, along[q])
+    if not low_x <= high_x:                     # every point at or behind the camera
+        seen[:] = False
+        return
+    width = int((high_x - low_x) / cell) + 1
+    height = int((high_y - low_y) / cell) + 1
     nearest = np.full((width, height), np.inf)
     column, row = np.empty(count, np.int64), np.empty(count, np.int64)
     for q in range(count):
+        if depth[q] <= NEAR_PLANE:
+            continue
         column[q] = int((across[q] - low_x) / cell)
         row[q] = int((along[q] - low_y) / cell)
         nearest[column[q], row[q]] = min(nearest[column[q], row[q]], depth[q])
@@ -569,7 +582,7 @@ def _seen_kernel(posed, posed_normals, viewpoint, hidden_depth, cell, seen):
         facing = 0.0
         for a in range(3):
             facing += posed_normals[q, a] * (viewpoint[a] - posed[q, a])
-        seen[q] = facing > 0.0 and depth[q] > 0.0
+        seen[q] = facing > 0.0 and depth[q] > NEAR_PLANE
         if not seen[q]:
             continue
         for x in range(max(column[q] - 1, 0), min(column[q] + 2, width)):
@@ -1151,7 +1164,7 @@ def _depth_from(reading, predicted, viewpoint):
     """SKR's reading (J, 3) with each joint's depth along its ray from ``viewpoint`` (3,)
     taken from ``predicted`` (J, 3): what one view says of a joint is across its ray."""
     rays = reading - viewpoint
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
     return reading + np.einsum("ja,ja->j", predicted - reading, rays)[:, None] * rays
 
 

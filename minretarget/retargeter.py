@@ -235,20 +235,26 @@ class Retargeter:
                              "units?)")
         return viewpoint
 
-    def step_skeleton(self, source_joints: ArrayLike,
-                      points: ArrayLike | None = None) -> RetargetedFrame:
+    def step_skeleton(self, source_joints: ArrayLike, points: ArrayLike | None = None,
+                      viewpoint: ArrayLike | None = None) -> RetargetedFrame:
         """Retarget one frame given the source skeleton (J, 3) directly (skips SKR; like
         SKR's, it is smoothed unless ``smoothing`` is None, and denoised if ``denoise``).
         ``points``: the (P, 3) cloud the skeleton was found in (``skeleton``), if any: the
         facing check then runs SKR on it again, half turned, when the skeleton faces away,
-        and the source fit tracks its body in it; without it every skeleton stands as given."""
+        and the source fit tracks its body in it (``viewpoint``: the one depth camera that saw
+        it, as ``step``'s); without it every skeleton stands as given."""
         self._require_target("step_skeleton")
         source_joints = as_float32_array(source_joints, "source joints", (NUM_JOINTS, 3))
+        if viewpoint is not None and points is None:
+            raise ValueError("a viewpoint places the camera that saw a cloud: give the points "
+                             "too")
         if points is not None:
             points = as_point_cloud(points, "source points", MIN_POINTS)
+            if viewpoint is not None:
+                viewpoint = self._checked_viewpoint(viewpoint, points)
         if self.warn and self._state is None:
             check_body(source_joints, "source joints, frame 0")
-        return self._step(points, source_joints)
+        return self._step(points, source_joints, viewpoint)
 
     def _step(self, points, joints, viewpoint=None):
         """One checked frame down every stage -> RetargetedFrame."""
@@ -321,7 +327,8 @@ class Retargeter:
         joints, global_rotations = forward_kinematics(rotations, root, self.target.tpose_joints)
         return Skinning(self.target).skin(joints, global_rotations), joints
 
-    def retarget_sequence(self, frames: ArrayLike) -> RetargetedFrame:
+    def retarget_sequence(self, frames: ArrayLike,
+                          viewpoint: ArrayLike | None = None) -> RetargetedFrame:
         """Retarget a whole recorded sequence at once (offline): the same result as ``run``,
         up to float32 rounding, faster per frame.
 
@@ -332,6 +339,8 @@ class Retargeter:
 
         Args:
             frames: (T, P, 3) float32 source clouds, metres (the same P in every frame).
+            viewpoint: the one depth camera that saw every cloud, (3,) metres (``step``), or
+                None.
         Returns:
             RetargetedFrame whose fields have a leading T axis: vertices (T, V, 3), joints
             (T, J, 3), rotations (T, J, 4), root (T, 3), source_joints (T, J, 3).
@@ -341,6 +350,8 @@ class Retargeter:
         if len(frames) == 0 or frames.shape[1] < MIN_POINTS:
             raise ValueError(f"source frames must hold at least one frame of at least "
                              f"{MIN_POINTS} points, got shape {frames.shape}")
+        if viewpoint is not None:
+            viewpoint = self._checked_viewpoint(viewpoint, frames[0])
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()
@@ -349,7 +360,7 @@ class Retargeter:
         # at once (LBS blends many frames per matrix product).
         readings = self.skeleton(frames)
         stages = self._stages[:-1]
-        out = [self._fold(Frame(t, cloud, readings[t]), stages)
+        out = [self._fold(Frame(t, cloud, readings[t], viewpoint=viewpoint), stages)
                for t, cloud in enumerate(frames)]
         stacked = {name: np.stack([getattr(frame, name) for frame in out])
                    for name in ("posed_joints", "global_rotations", "rotations", "root",
@@ -358,8 +369,10 @@ class Retargeter:
         return RetargetedFrame(vertices, stacked["posed_joints"], stacked["rotations"],
                                stacked["root"], stacked["joints"])
 
-    def run(self, frames: Iterable[ArrayLike]) -> Iterator[RetargetedFrame]:
-        """Retarget an iterable of (P, 3) source frames lazily, one RetargetedFrame each.
+    def run(self, frames: Iterable[ArrayLike],
+            viewpoint: ArrayLike | None = None) -> Iterator[RetargetedFrame]:
+        """Retarget an iterable of (P, 3) source frames lazily, one RetargetedFrame each
+        (``viewpoint``: the one depth camera that saw every cloud, as ``step``'s, or None).
 
         Memory stays constant in the number of frames: nothing is kept between frames but
         the recurrent state. The stream restarts (``reset``) first.
@@ -367,6 +380,6 @@ class Retargeter:
         self.reset()
         for index, points in enumerate(frames):
             try:
-                yield self.step(points)
+                yield self.step(points, viewpoint)
             except ValueError as error:
                 raise ValueError(f"frame {index}: {error}") from None

@@ -363,6 +363,24 @@ def test_a_camera_at_one_side_sees_that_side_and_not_the_arm_behind_the_body(mod
         assert not left[heaviest == JOINT_INDEX[hidden]].any()
 
 
+@pytest.mark.parametrize("distance", [0.31, 0.5, 0.7])
+def test_a_camera_among_the_model_s_points_sees_only_what_lies_before_it(model, distance):
+    """A camera inside the arm span of a T-pose (the left hand beside or behind it): the
+    points behind its image plane are not seen, and the image stays bounded."""
+    rest, tpose = fit.shaped(model, np.zeros(len(model.points_basis)))
+    rotations, joints = fit.forward(np.tile(np.eye(3), (NUM_JOINTS, 1, 1)), tpose[0], tpose)
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    viewpoint = posed.points.mean(axis=0) + (distance, 0.0, 0.0)
+    got = fit.seen_points(posed, viewpoint)
+    want = twins.seen_points(posed.points, posed.normals, viewpoint, fit.HIDDEN_DEPTH,
+                             fit.SEEN_CELL)
+    # this near, a point's cell is its coordinate times up to 40: a few land on a cell's edge,
+    # where the kernel's rounding and NumPy's part
+    assert (got != want).sum() <= 0.01 * len(got)
+    behind = (posed.points - viewpoint)[:, 0] > -fit.NEAR_PLANE      # the view looks along -X
+    assert behind.any() and not got[behind].any() and got.any()
+
+
 def test_lost_legs_from_one_camera_count_only_what_it_sees(model):
     _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=11, turn=0.5)
     *_, other_rotations, other_joints = posed_state(model, seed=12, turn=0.5)
@@ -399,6 +417,43 @@ def test_a_fit_told_the_camera_is_not_drawn_onto_the_side_it_sees(model):
         errors[told is None] = np.linalg.norm(found - joints, axis=1).mean()
     assert errors[False] < 0.005
     assert errors[True] > 2 * errors[False]
+
+
+def test_every_step_of_a_stream_told_its_camera_is_told_it(model, monkeypatch):
+    """Every Gauss-Newton run, lost-leg test and shape step of a stream told its camera gets
+    that camera, whichever start and branch runs: the settings make every one of them run
+    (the swapped start, the aimed starts, the lost-leg steps, the steps more, the
+    calibration's settling)."""
+    calls = {"steps": [], "lost legs": [], "shape": []}
+    gauss_newton, lost_legs, surface_terms = fit._gauss_newton, fit.lost_legs, fit.surface_terms
+
+    def spy_steps(*args):
+        calls["steps"].append(args[-4])                    # viewpoint, before local, root, joints
+        return gauss_newton(*args)
+
+    def spy_lost_legs(*args, **kwargs):
+        calls["lost legs"].append(args[7] if len(args) > 7 else kwargs.get("viewpoint"))
+        return lost_legs(*args, **kwargs)
+
+    def spy_surface_terms(posed, cloud, grid, settings, viewpoint=None):
+        calls["shape"].append(viewpoint)
+        return surface_terms(posed, cloud, grid, settings, viewpoint)
+
+    monkeypatch.setattr(fit, "_gauss_newton", spy_steps)
+    monkeypatch.setattr(fit, "lost_legs", spy_lost_legs)
+    monkeypatch.setattr(fit, "surface_terms", spy_surface_terms)
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=7, turn=0.2)
+    viewpoint = joints[0] + np.array([0.3, 0.4, 2.5])
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    cloud = posed.points[fit.seen_points(posed, viewpoint)]
+    settings = fit.FitSettings(calibration_frames=2, settle_rounds=1, swap_legs_cost=1e-6,
+                               stray_share=1e-6, lost_leg_distance=0.005, lost_leg_share=1e-6,
+                               still_falling=0.0)
+    readings = np.stack([joints + 0.03 * k for k in range(3)])
+    fit.track(model, settings, [cloud] * 3, readings, [viewpoint] * 3)
+    for name, told in calls.items():
+        assert len(told) >= 2, name
+        assert all(camera is not None and np.array_equal(camera, viewpoint) for camera in told), name
 
 
 def test_depth_from_the_motion_keeps_the_reading_across_its_ray():
@@ -925,6 +980,35 @@ def test_a_stream_told_its_camera_is_set_back_and_goes_on_exactly(sample_clouds)
     del arrays["calibration_viewpoints"]
     assert all(frame[4] is None for frame in fit.fit_state_from_arrays(
         arrays, fit.body_model()).calibration)
+
+
+def test_every_way_in_hands_the_fit_the_viewpoint(sample_clouds):
+    """``run``, ``retarget_sequence`` and ``step_skeleton`` with a viewpoint give what
+    ``step`` gives with it."""
+    from minretarget.retargeter import Retargeter
+    from minretarget.weights import load_weights
+    clouds, target = sample_clouds
+    config = PipelineConfig(smoothing=None, denoise=False, foot_lock=None,
+                            fit_source=fit.FitSettings(calibration_frames=2, settle_rounds=1))
+    retargeter = Retargeter(load_weights(), config)
+    retargeter.set_target(target)
+    camera = clouds[0].mean(axis=0) + np.array([0.5, 0.3, 2.5], np.float32)
+    clouds = np.stack([cloud[cloud[:, 2] > np.median(cloud[:, 2])][:900] for cloud in clouds])
+    stepped = [retargeter.step(cloud, camera).source_joints for cloud in clouds]
+    ran = [frame.source_joints for frame in retargeter.run(clouds, camera)]
+    np.testing.assert_array_equal(ran, stepped)
+    np.testing.assert_allclose(retargeter.retarget_sequence(clouds, camera).source_joints,
+                               stepped, atol=1e-5)
+    retargeter.reset()
+    readings = retargeter.skeleton(clouds)
+    given = [retargeter.step_skeleton(reading, cloud, camera).source_joints
+             for reading, cloud in zip(readings, clouds)]
+    np.testing.assert_allclose(given, stepped, atol=1e-5)
+    retargeter.reset()
+    assert np.abs(np.array([frame.source_joints for frame in retargeter.run(clouds)])
+                  - stepped).max() > 1e-3
+    with pytest.raises(ValueError, match="give the points too"):
+        retargeter.step_skeleton(readings[0], viewpoint=camera)
 
 
 def test_a_viewpoint_is_refused_where_it_cannot_be_used(sample_clouds, tiny_weights):

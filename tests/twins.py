@@ -415,9 +415,10 @@ def joint_pull_rows(joints, goal, weight):
 
 def seen_points(points, normals, viewpoint, hidden_depth, cell):
     """The source fit's model points a camera at ``viewpoint`` sees (minretarget.fit's
-    ``_seen_kernel``) by brute force: facing it, in front of it, and no point in the 3 x 3
-    cells of a perspective image around its own (``cell`` metres at the points' centre) more
-    than ``hidden_depth`` nearer along the view -> (Q,) bool."""
+    ``_seen_kernel``) by brute force: facing it, past ``near_plane`` in front of it, and no
+    such point in the 3 x 3 cells of a perspective image around its own (``cell`` metres at
+    the points' centre) more than ``hidden_depth`` nearer along the view -> (Q,) bool."""
+    from minretarget.fit import NEAR_PLANE as near_plane
     axis = points.mean(axis=0) - viewpoint
     distance = np.linalg.norm(axis)
     axis = axis / distance
@@ -426,12 +427,15 @@ def seen_points(points, normals, viewpoint, hidden_depth, cell):
     up = np.cross(axis, right)
     rays = points - viewpoint
     depth = rays @ axis
-    scale = distance / np.maximum(depth, 1e-6)
+    front = depth > near_plane
+    if not front.any():
+        return front
+    scale = distance / np.where(front, depth, 1.0)
     across, along = scale * (rays @ right), scale * (rays @ up)
-    column = ((across - across.min()) / cell).astype(np.int64)
-    row = ((along - along.min()) / cell).astype(np.int64)
+    column = ((across - across[front].min()) / cell).astype(np.int64)
+    row = ((along - along[front].min()) / cell).astype(np.int64)
     near = ((np.abs(column[:, None] - column[None]) <= 1)
-            & (np.abs(row[:, None] - row[None]) <= 1))
+            & (np.abs(row[:, None] - row[None]) <= 1) & front[None])
     nearest = np.where(near, depth[None], np.inf).min(axis=1)
     facing = np.einsum("qa,qa->q", normals, viewpoint - points) > 0
-    return facing & (depth > 0) & ~(nearest < depth - hidden_depth)
+    return facing & front & ~(nearest < depth - hidden_depth)
