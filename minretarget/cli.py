@@ -176,6 +176,8 @@ def retarget_to_files(retargeter, open_at, out_dir, formats, space, settings, re
     viewpoint = settings.get("viewpoint")
     if source.kind != "points":
         step = retargeter.step_skeleton
+    elif viewpoint is None:
+        step = retargeter.step
     else:
         def step(points):
             return retargeter.step(points, viewpoint)

@@ -380,6 +380,8 @@ class Retargeter:
         self.reset()
         for index, points in enumerate(frames):
             try:
-                yield self.step(points, viewpoint)
+                # step(points) as before where no camera is given (a subclass's step may
+                # take the points alone)
+                yield self.step(points) if viewpoint is None else self.step(points, viewpoint)
             except ValueError as error:
                 raise ValueError(f"frame {index}: {error}") from None
