@@ -55,8 +55,8 @@ from minretarget.retargeter import Retargeter
 
 sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from training.data.bodies import body_from_seed, pose_body, sampled_body_seeds  # noqa: E402
-from training.data.depth_camera import (CHEST_JOINT, VIEWS, following, view_cameras,  # noqa: E402
-                                        visible_points)
+from training.data.depth_camera import (CHEST_JOINT, VIEWS, following,  # noqa: E402
+                                        sensor_noise, view_cameras, visible_points)
 
 FULL = "full cloud"
 CAMERAS = ("fixed", "following")
@@ -72,7 +72,7 @@ def view_names(cameras):
     return [FULL] + [f"{view} ({camera})" for camera in cameras for view in VIEWS]
 
 
-def render_views(sequence, body, cameras, points, seed, index):
+def render_views(sequence, body, cameras, points, seed, index, noise=False):
     """Every single view's clouds of one trial.
 
     Args:
@@ -81,6 +81,8 @@ def render_views(sequence, body, cameras, points, seed, index):
         cameras: camera rigs (``CAMERAS``) to render.
         points: points kept per frame at most.
         seed, index: the run's seed and the trial's number (seed the subsampling).
+        noise: add a depth sensor's noise (``depth_camera.sensor_noise``), from its own
+            seeded generator: the points drawn are those of the run without it.
     Returns:
         {view name: list of T (P_t, 3) float32 clouds}, {view name: (T, 3) the camera's
         positions}, and the seconds spent rendering.
@@ -102,8 +104,13 @@ def render_views(sequence, body, cameras, points, seed, index):
             if rig == "following":
                 shifts[:, [0, 2]] = root[:, [0, 2]] - root[0, [0, 2]]
             cameras = [following(placed[view], shift) for shift in shifts]
-            out[f"{view} ({rig})"] = [visible_points(frame, body.faces, camera, points, rng)
-                                      for frame, camera in zip(vertices, cameras)]
+            clouds = [visible_points(frame, body.faces, camera, points, rng)
+                      for frame, camera in zip(vertices, cameras)]
+            if noise:
+                noisy = np.random.default_rng([seed, rig_number, view_number, index, 1])
+                clouds = [sensor_noise(cloud, camera, noisy) if len(cloud) else cloud
+                          for cloud, camera in zip(clouds, cameras)]
+            out[f"{view} ({rig})"] = clouds
             positions[f"{view} ({rig})"] = np.stack([camera.position for camera in cameras])
     return out, positions, time.perf_counter() - start
 
@@ -224,6 +231,10 @@ def main(argv=None):
     parser.add_argument("--points", type=int, default=2048,
                         help="points drawn per frame from the pixels seen (all if fewer)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the subsampling")
+    parser.add_argument("--noise", action="store_true",
+                        help="add a structured-light depth sensor's noise to the single views "
+                             "(training.data.depth_camera.sensor_noise: 10 mm along the ray "
+                             "at 2.5 m); the full cloud stays as it is")
     parser.add_argument("--trials", type=int, default=12,
                         help="first validation trials (12: the whole validation set)")
     parser.add_argument("--json", help="write every number as JSON here")
@@ -245,7 +256,7 @@ def main(argv=None):
         sequence = trial.build()
         clouds, viewpoints, seconds = render_views(
             sequence, bodies[str(sequence["source_body"])], args.cameras, args.points,
-            args.seed, index)
+            args.seed, index, args.noise)
         render_seconds += seconds
         clouds = {FULL: list(sequence["source_points"]), **clouds}
         retargeters = {}
@@ -266,7 +277,8 @@ def main(argv=None):
     frames = sum(r["frames"] for r in results)
     seconds = time.perf_counter() - started
     text = table(pooled, ratios, views, args.presets,
-                 f"Single view, validation ({len(results)} trials, {frames} frames; lost: "
+                 f"Single view, validation ({len(results)} trials, {frames} frames"
+                 f"{'; single views with depth-sensor noise' if args.noise else ''}; lost: "
                  f"frames with under {MIN_POINTS} points seen, the last result held; points: "
                  f"mean fed per frame seen; metres, Acc m/frame^2; source err: the source "
                  f"skeleton fed to SMRM against the truth; ratio: PA-MPJPE over the same "
@@ -286,8 +298,9 @@ def main(argv=None):
     if args.json:
         write_text(args.json, json.dumps(
             {"split": "validation", "rows": pooled, "ratios_to_full_cloud": ratios,
-             "goal": GOAL, "paired_told_minus_fitted": paired, "views": views, "presets": args.presets, "cameras": args.cameras,
-             "points": args.points, "seed": args.seed, "frames": frames,
+             "goal": GOAL, "paired_told_minus_fitted": paired, "views": views,
+             "presets": args.presets, "cameras": args.cameras,
+             "points": args.points, "seed": args.seed, "noise": args.noise, "frames": frames,
              "per_sequence": results, **record, "seconds": round(seconds, 1),
              "render_seconds": round(render_seconds, 1)}, indent=2))
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from minretarget.kinematics import quaternion_to_matrix
-from training.data.depth_camera import (body_axes, look_at, render, view_cameras,
+from training.data.depth_camera import (AXIAL_NOISE, LATERAL_NOISE_PIXELS, body_axes,
+                                        look_at, render, sensor_noise, view_cameras,
                                         visible_points)
 
 
@@ -138,6 +139,29 @@ def test_nothing_behind_the_camera_or_beyond_its_range():
     assert len(render(vertices, faces, CAMERA)[0]) == 0
     vertices, faces = square(-10.0, 3.0)               # 13 m away: past the far plane
     assert len(render(vertices, faces, CAMERA)[0]) == 0
+
+
+@pytest.mark.parametrize("distance", [1.0, 2.5, 4.0])
+def test_sensor_noise_is_the_model_s_along_the_ray_and_across_it(distance):
+    """Points of a plane facing a camera at ``distance``: the noise moves each along its own
+    ray by the axial model's deviation at that depth, and across the image by 0.8 pixels."""
+    camera = look_at([0.3, 1.2, distance], [0.3, 1.2, 0.0])       # looking down -Z
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(0.1, 0.5, 20_000), rng.uniform(1.0, 1.4, 20_000),
+                              np.zeros(20_000)])
+    noisy = sensor_noise(points, camera, np.random.default_rng(1)).astype(np.float64)
+    base, growth, offset = AXIAL_NOISE
+    rays = points - camera.position
+    depth = rays @ camera.rotation[2]
+    along = (noisy - camera.position) @ camera.rotation[2] - depth
+    assert np.std(along) == pytest.approx(base + growth * (distance - offset) ** 2, rel=0.05)
+    assert abs(np.mean(along)) < 3 * np.std(along) / np.sqrt(len(along))
+    # across: the pixel each lands on moves by 0.8 pixels' deviation, at its own depth
+    pixels = lambda p: ((p - camera.position) @ camera.rotation[:2].T  # noqa: E731
+                        / ((p - camera.position) @ camera.rotation[2])[:, None] * camera.focal)
+    moved = pixels(noisy) - pixels(points)
+    assert np.std(moved, axis=0) == pytest.approx([LATERAL_NOISE_PIXELS] * 2, rel=0.05)
+    assert sensor_noise(points[:0], camera, np.random.default_rng(1)).shape == (0, 3)
 
 
 def test_view_cameras_stand_in_front_beside_and_behind_the_body():

@@ -453,7 +453,8 @@ def test_every_step_of_a_stream_told_its_camera_is_told_it(model, monkeypatch):
     fit.track(model, settings, [cloud] * 3, readings, [viewpoint] * 3)
     for name, told in calls.items():
         assert len(told) >= 2, name
-        assert all(camera is not None and np.array_equal(camera, viewpoint) for camera in told), name
+        assert all(camera is not None and np.array_equal(camera, viewpoint)
+                   for camera in told), name
 
 
 def test_depth_from_the_motion_keeps_the_reading_across_its_ray():

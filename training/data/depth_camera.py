@@ -161,6 +161,29 @@ def visible_points(vertices, faces, camera, count, rng):
     return np.ascontiguousarray(points[chosen], dtype=np.float32)
 
 
+# A structured-light sensor's noise (Nguyen, Izadi and Lovell 2012, "Modeling Kinect sensor
+# noise for improved 3D reconstruction and tracking": Kinect v1, surfaces 10-60 degrees from
+# facing the camera): along the optical axis a standard deviation of 1.2 mm + 1.9 mm per m^2
+# of (depth - 0.4 m)^2 (10 mm at 2.5 m), across it 0.8 pixels. Time-of-flight sensors (Kinect
+# v2, Azure Kinect) are quieter: this is the noisy end.
+AXIAL_NOISE = (0.0012, 0.0019, 0.4)       # metres, metres per m^2, metres
+LATERAL_NOISE_PIXELS = 0.8
+
+
+def sensor_noise(points, camera, rng):
+    """``points`` (N, 3) world metres that ``camera`` sees, as a noisy depth sensor gives them:
+    each moved along its own ray by the axial noise of its depth (so it stays on its pixel)
+    and across the image by the lateral noise, independently -> (N, 3) float32."""
+    local = (np.asarray(points, np.float64) - camera.position) @ camera.rotation.T  # x, y, z
+    depth = local[:, 2]
+    base, growth, offset = AXIAL_NOISE
+    noisy_depth = depth + rng.normal(size=len(depth)) * (base + growth * (depth - offset) ** 2)
+    local *= (noisy_depth / depth)[:, None]
+    local[:, :2] += (rng.normal(size=(len(depth), 2))
+                     * (LATERAL_NOISE_PIXELS * noisy_depth / camera.focal)[:, None])
+    return np.ascontiguousarray(local @ camera.rotation + camera.position, dtype=np.float32)
+
+
 def body_axes(root_rotation):
     """The body's forward (+Z) and left (+X) axes at a frame, turned by its root rotation
     (w, x, y, z) and laid flat (horizontal unit vectors)."""
