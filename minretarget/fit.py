@@ -548,11 +548,22 @@ def _seen_kernel(posed, posed_normals, viewpoint, hidden_depth, cell, seen):
     axis = centre - viewpoint
     distance = np.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
     axis /= distance
-    helper = np.zeros(3)                        # the world axis least along the view's
-    helper[np.argmin(np.abs(axis))] = 1.0
-    right = np.cross(axis, helper)
-    right /= np.sqrt(right[0] ** 2 + right[1] ** 2 + right[2] ** 2)
-    up = np.cross(axis, right)
+    # right = axis x the world axis least along the view's, up = axis x right; written out:
+    # np.cross and np.argmin cost seconds to compile
+    least = 0
+    for a in range(1, 3):
+        if abs(axis[a]) < abs(axis[least]):
+            least = a
+    right, up = np.empty(3), np.empty(3)
+    for a in range(3):
+        b, c = (a + 1) % 3, (a + 2) % 3
+        right[a] = (axis[b] if c == least else 0.0) - (axis[c] if b == least else 0.0)
+    norm = np.sqrt(right[0] ** 2 + right[1] ** 2 + right[2] ** 2)
+    for a in range(3):
+        right[a] /= norm
+    for a in range(3):
+        b, c = (a + 1) % 3, (a + 2) % 3
+        up[a] = axis[b] * right[c] - axis[c] * right[b]
     depth, across, along = np.empty(count), np.empty(count), np.empty(count)
     low_x, low_y, high_x, high_y = np.inf, np.inf, -np.inf, -np.inf
     for q in range(count):
@@ -570,7 +581,8 @@ def _seen_kernel(posed, posed_normals, viewpoint, hidden_depth, cell, seen):
         return
     width = int((high_x - low_x) / cell) + 1
     height = int((high_y - low_y) / cell) + 1
-    nearest = np.full((width, height), np.inf)
+    nearest = np.empty((width, height))
+    nearest[:] = np.inf
     column, row = np.empty(count, np.int64), np.empty(count, np.int64)
     for q in range(count):
         if depth[q] <= NEAR_PLANE:

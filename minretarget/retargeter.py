@@ -7,6 +7,7 @@
 """
 import os
 import threading
+import warnings
 from collections.abc import Iterable, Iterator
 from typing import NamedTuple
 
@@ -21,13 +22,15 @@ from .pipeline import PipelineConfig, as_config, check_pipeline
 from .sampling import seeded_subset
 from .skin import skinning_weights
 from .stages import (Frame, Reading, Skinning, StreamState, build_stages, check_stream_state)
-from .validation import as_float32_array, as_point_cloud, as_workers, check_body
+from .validation import (InputWarning, as_float32_array, as_point_cloud, as_workers,
+                         check_body)
 from .weights import Weights, load_weights
 
 
 # Metres: a viewpoint nearer the cloud's centre than this is inside the body, or in another
-# frame or unit than the points.
-MIN_VIEW_DISTANCE = 0.3
+# frame or unit than the points (refused); farther than MAX_VIEW_DISTANCE, past any depth
+# sensor's range, it is probably in another unit (warned of on a stream's first frame).
+MIN_VIEW_DISTANCE, MAX_VIEW_DISTANCE = 0.3, 20.0
 
 
 class Target(NamedTuple):
@@ -233,6 +236,10 @@ class Retargeter:
                              f"cloud's centre: a camera that sees a body stands at least "
                              f"{MIN_VIEW_DISTANCE} m from it (is it in the points' frame and "
                              "units?)")
+        if distance > MAX_VIEW_DISTANCE and self.warn and self._state is None:
+            warnings.warn(f"viewpoint {viewpoint.tolist()} is {distance:.1f} m from the cloud's "
+                          f"centre, past any depth sensor's range: is it in the points' units "
+                          f"and frame? (the fit takes it as given)", InputWarning, stacklevel=3)
         return viewpoint
 
     def step_skeleton(self, source_joints: ArrayLike, points: ArrayLike | None = None,

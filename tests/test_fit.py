@@ -1030,6 +1030,9 @@ def test_a_viewpoint_is_refused_where_it_cannot_be_used(sample_clouds, tiny_weig
     with pytest.raises(ValueError, match="viewpoint"):
         fitted.step(clouds[0], (0.0, np.nan, 3.0))
     assert fitted.state is None                      # nothing of the stream was changed
+    from minretarget.validation import InputWarning
+    with pytest.warns(InputWarning, match="250.0 m from the cloud's centre.*units"):
+        fitted.step(clouds[0], centre + (0.0, 0.0, 250.0))     # centimetres, say
 
 
 def test_a_cloud_without_the_body_is_warned_of_by_frame_and_recovered_from(sample_clouds):
