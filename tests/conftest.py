@@ -14,6 +14,22 @@ GOLDEN = Path(__file__).parent / "golden"
 # tests/golden/shipped_presets.npz (tests/make_golden.py --shipped): frames streamed, past the
 # source fit's calibration (15), and the stride of the target vertices kept.
 SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE = 24, 97
+# A camera 2.5 m in front of the shipped sample's first cloud, a little above its centre: the
+# golden's one-sided stream (``one_sided``) is what the fit told this viewpoint reads.
+SHIPPED_CAMERA_OFFSET = (0.0, 0.3, 2.5)
+
+
+def one_sided(clouds, offset=SHIPPED_CAMERA_OFFSET):
+    """A crude single view of each cloud (P, 3): its half nearer a camera at the first
+    cloud's centre + ``offset`` metres (along the line to that centre) -> the clouds, the
+    camera (3,) float32."""
+    camera = (clouds[0].mean(axis=0) + np.asarray(offset)).astype(np.float32)
+    axis = clouds[0].mean(axis=0) - camera
+    kept = []
+    for cloud in clouds:
+        depth = (cloud - camera) @ axis
+        kept.append(np.ascontiguousarray(cloud[depth < np.median(depth)]))
+    return kept, camera
 # The CMU motion capture (README, Data): MINRETARGET_CMU_DIR, else beside the repository.
 CMU_DIR = Path(os.environ.get("MINRETARGET_CMU_DIR")
                or Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu")

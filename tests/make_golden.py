@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from reference_models import random_reference, random_stream  # noqa: E402
 
-from conftest import SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE  # noqa: E402
+from conftest import SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE, one_sided  # noqa: E402
 from minretarget.pipeline import UNCOUPLED  # noqa: E402
 from training.export import export_weights  # noqa: E402
 
@@ -51,7 +51,9 @@ def main():
 
 def shipped_outputs():
     """Each preset of minretarget.pipeline streamed over the shipped sample's first
-    SHIPPED_FRAMES clouds with the shipped weights (one BLAS thread): {f"{preset}_{field}"}."""
+    SHIPPED_FRAMES clouds with the shipped weights (one BLAS thread): {f"{preset}_{field}"};
+    and the fitted preset told a camera on those clouds' one-sided halves (``one_sided``):
+    {f"fitted_viewpoint_{field}"}."""
     from threadpoolctl import threadpool_limits
 
     from minretarget.pipeline import PRESETS
@@ -60,11 +62,14 @@ def shipped_outputs():
     source, target_points, faces, _ = load_sample()
     clouds = [cloud for cloud, _ in zip(source.frames, range(SHIPPED_FRAMES))]
     outputs = {}
+    told, camera = one_sided(clouds)
     with threadpool_limits(1):
-        for name in PRESETS:
-            retargeter = Retargeter.from_weights(None, name, warn=False)
+        for name, (preset, streamed, viewpoint) in {
+                **{name: (name, clouds, None) for name in PRESETS},
+                "fitted_viewpoint": ("fitted", told, camera)}.items():
+            retargeter = Retargeter.from_weights(None, preset, warn=False)
             retargeter.set_target(target_points, faces)
-            frames = list(retargeter.run(clouds))
+            frames = list(retargeter.run(streamed, viewpoint))
             for field in ("joints", "rotations", "root", "source_joints"):
                 outputs[f"{name}_{field}"] = np.stack([getattr(f, field) for f in frames])
             outputs[f"{name}_vertices"] = np.stack(

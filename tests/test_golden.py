@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from conftest import GOLDEN, SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE
+from conftest import GOLDEN, SHIPPED_FRAMES, SHIPPED_VERTEX_STRIDE, one_sided
 from minretarget.pipeline import DEFAULT_PRESET, PRESETS, PipelineConfig
 from minretarget.retargeter import Retargeter
 from minretarget.sources import load_sample
@@ -65,3 +65,23 @@ def test_every_preset_on_the_shipped_weights_and_sample_gives_its_golden_output(
     rotations = np.stack([f.rotations for f in frames])
     agreement = np.abs(np.sum(rotations * want[f"{name}_rotations"], axis=-1))
     assert agreement.min() > 1 - 1e-5, preset
+
+
+def test_the_fit_told_a_camera_on_the_shipped_sample_gives_its_golden_output(shipped_stream):
+    """The fitted preset told where a camera stands, on the one-sided halves of the shipped
+    sample's clouds (``conftest.one_sided``; tests/make_golden.py --shipped wrote it)."""
+    target_points, faces, clouds, want = shipped_stream
+    told, camera = one_sided(clouds)
+    retargeter = Retargeter.from_weights(None, "fitted", warn=False)
+    retargeter.set_target(target_points, faces)
+    with threadpool_limits(1):
+        frames = list(retargeter.run(told, camera))
+    for field in ("joints", "root", "source_joints", "vertices"):
+        got = np.stack([getattr(f, field) for f in frames])
+        if field == "vertices":
+            got = got[:, ::SHIPPED_VERTEX_STRIDE]
+        np.testing.assert_allclose(got, want[f"fitted_viewpoint_{field}"],
+                                   atol=SHIPPED_TOLERANCE, err_msg=field)
+    # the camera is read: untold, the same clouds give another skeleton
+    untold = np.stack([f.source_joints for f in retargeter.run(told)])
+    assert np.abs(untold - want["fitted_viewpoint_source_joints"]).max() > 0.01
