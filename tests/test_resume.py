@@ -367,7 +367,10 @@ def test_long_stream_memory_is_flat(tiny_weights):
         tracemalloc.stop()
     resident_growth = resident_bytes() - resident
     assert t == 9_999 and np.isfinite(frame.vertices).all()
-    assert traced_growth < 16 * 1024, f"{traced_growth} bytes kept over 2,000 frames"
+    # Under 16 bytes a frame: less than any Python object a frame would keep if it leaked
+    # (the 16 KiB bound this had was met by 18,334 bytes once in a full suite run, from
+    # caches the earlier tests leave filling; alone it keeps under 16 KiB).
+    assert traced_growth < 32 * 1024, f"{traced_growth} bytes kept over 2,000 frames"
     assert resident_growth < 8 * 2**20, f"resident size grew {resident_growth} bytes"
 
 
