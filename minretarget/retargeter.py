@@ -224,7 +224,9 @@ class Retargeter:
             check_body(points, "source points, frame 0")
         return self._step(points, None, viewpoint)
 
-    def _checked_viewpoint(self, viewpoint, points):
+    def _checked_viewpoint(self, viewpoint, points, first=None):
+        """(3,) float32 ``viewpoint`` checked against ``points`` (P, 3), frame 0's warning
+        given when ``first`` (default: the stream has not started)."""
         if self.config.fit_source is None:
             raise ValueError(f"a viewpoint is read by the source fit only, and this pipeline "
                              f"({self.config.preset_name() or 'custom'}) has none: use the "
@@ -236,7 +238,8 @@ class Retargeter:
                              f"cloud's centre: a camera that sees a body stands at least "
                              f"{MIN_VIEW_DISTANCE} m from it (is it in the points' frame and "
                              "units?)")
-        if distance > MAX_VIEW_DISTANCE and self.warn and self._state is None:
+        first = self._state is None if first is None else first
+        if distance > MAX_VIEW_DISTANCE and self.warn and first:
             warnings.warn(f"viewpoint {viewpoint.tolist()} is {distance:.1f} m from the cloud's "
                           f"centre, past any depth sensor's range: is it in the points' units "
                           f"and frame? (the fit takes it as given)", InputWarning, stacklevel=3)
@@ -358,7 +361,7 @@ class Retargeter:
             raise ValueError(f"source frames must hold at least one frame of at least "
                              f"{MIN_POINTS} points, got shape {frames.shape}")
         if viewpoint is not None:
-            viewpoint = self._checked_viewpoint(viewpoint, frames[0])
+            viewpoint = self._checked_viewpoint(viewpoint, frames[0], first=True)
         if self.warn:
             check_body(frames[0], "source points, frame 0")
         self.reset()

@@ -1033,6 +1033,8 @@ def test_a_viewpoint_is_refused_where_it_cannot_be_used(sample_clouds, tiny_weig
     from minretarget.validation import InputWarning
     with pytest.warns(InputWarning, match="250.0 m from the cloud's centre.*units"):
         fitted.step(clouds[0], centre + (0.0, 0.0, 250.0))     # centimetres, say
+    with pytest.warns(InputWarning, match="past any depth sensor's range"):   # mid-stream too
+        fitted.retarget_sequence(clouds[:2], centre + (0.0, 0.0, 250.0))
 
 
 def test_a_cloud_without_the_body_is_warned_of_by_frame_and_recovered_from(sample_clouds):
