@@ -1,8 +1,8 @@
 """Single-view robustness (issue 39): accuracy when the source is what one depth camera sees.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/single_view.py [--cmu DIR] [--weights FILE]
-        [--presets regressed fitted] [--cameras fixed following] [--points 2048] [--seed S]
-        [--trials N] [--json OUT.json] [--markdown OUT.md]
+        [--presets regressed fitted fitted+viewpoint] [--cameras fixed following]
+        [--points 2048] [--seed S] [--noise] [--trials N] [--json OUT.json] [--markdown OUT.md]
 
 Validation only (``training.data.datasets.validation_sequences``: 12 trials, 1,396 frames, held
 -out subjects on held-out bodies); there is no test-split mode: choose on validation.
@@ -27,15 +27,19 @@ Two camera rigs (``--cameras``):
     following    the camera keeps its direction and height and moves with the root
                  horizontally, 2.5 m away all along (a tracked camera): the body turns in
                  front of it, but never leaves it.
-Each view runs each preset (``pipeline.PRESETS``: regressed, fitted) online, ``Retargeter.step``
-a frame at a time, one fresh stream a trial and view, onto the trial's target (its T-pose
+Each view runs each preset (``pipeline.PRESETS``: regressed, fitted; and ``fitted+viewpoint``,
+the fitted preset told each frame's camera position) online, ``Retargeter.step`` a frame at
+a time, one fresh stream a trial and view, onto the trial's target (its T-pose
 points; SKR and SKIN find its rig, as ``accuracy.py``'s model row). Scored with
 ``accuracy.sequence_metrics`` (``minretarget.metrics.evaluate``) against the target's truth and
 pooled over trials weighted by frames (``accuracy.frame_weighted``); also the source skeleton's
 error (what SMRM was fed, against the true source joints, ``metrics.joint_errors``) and, where
 frames were lost, PA-MPJPE on the frames seen only. The ratio of each view's PA-MPJPE to the
-full cloud's (same preset) is the issue's goal: within 1.5x. About 9 minutes on one core
-(rendering about 1 of them); figures and findings in docs/single_view.md.
+full cloud's (same preset) is the issue's goal: within 1.5x. With ``fitted`` and
+``fitted+viewpoint`` both run, their per-trial paired differences are printed too.
+``--noise`` adds a depth sensor's noise to the single views (``depth_camera.sensor_noise``).
+About 9 minutes on one core (rendering about 1 of them); figures and findings in
+docs/single_view.md.
 """
 import argparse
 import json
