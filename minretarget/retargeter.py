@@ -219,14 +219,14 @@ class Retargeter:
         self._require_target("step")
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if viewpoint is not None:
-            viewpoint = self._checked_viewpoint(viewpoint, points)
+            viewpoint = self._checked_viewpoint(viewpoint, points, self._state is None)
         if self.warn and self._state is None:
             check_body(points, "source points, frame 0")
         return self._step(points, None, viewpoint)
 
-    def _checked_viewpoint(self, viewpoint, points, first=None):
-        """(3,) float32 ``viewpoint`` checked against ``points`` (P, 3), frame 0's warning
-        given when ``first`` (default: the stream has not started)."""
+    def _checked_viewpoint(self, viewpoint, points, first):
+        """(3,) float32 ``viewpoint`` checked against ``points`` (P, 3); a far camera is
+        warned of when ``first`` (a stream's first frame)."""
         if self.config.fit_source is None:
             raise ValueError(f"a viewpoint is read by the source fit only, and this pipeline "
                              f"({self.config.preset_name() or 'custom'}) has none: use the "
@@ -238,7 +238,6 @@ class Retargeter:
                              f"cloud's centre: a camera that sees a body stands at least "
                              f"{MIN_VIEW_DISTANCE} m from it (is it in the points' frame and "
                              "units?)")
-        first = self._state is None if first is None else first
         if distance > MAX_VIEW_DISTANCE and self.warn and first:
             warnings.warn(f"viewpoint {viewpoint.tolist()} is {distance:.1f} m from the cloud's "
                           f"centre, past any depth sensor's range: is it in the points' units "
@@ -261,7 +260,7 @@ class Retargeter:
         if points is not None:
             points = as_point_cloud(points, "source points", MIN_POINTS)
             if viewpoint is not None:
-                viewpoint = self._checked_viewpoint(viewpoint, points)
+                viewpoint = self._checked_viewpoint(viewpoint, points, self._state is None)
         if self.warn and self._state is None:
             check_body(source_joints, "source joints, frame 0")
         return self._step(points, source_joints, viewpoint)

@@ -13,6 +13,7 @@ from minretarget.kinematics import quaternion_to_matrix
 from minretarget.pipeline import PipelineConfig
 
 import twins
+from conftest import one_sided
 
 
 @pytest.fixture(scope="module")
@@ -959,10 +960,7 @@ def test_a_stream_told_its_camera_is_set_back_and_goes_on_exactly(sample_clouds)
     first, second, untold = (Retargeter(load_weights(), config) for _ in range(3))
     for retargeter in (first, second, untold):
         retargeter.set_target(target)
-    camera = clouds[0].mean(axis=0) + np.array([0.5, 0.3, 2.5], np.float32)
-    # what that camera would see: the points facing it, roughly (the half nearer to it)
-    seen = [cloud[np.linalg.norm(cloud - camera, axis=1)
-                  < np.median(np.linalg.norm(cloud - camera, axis=1))] for cloud in clouds]
+    seen, camera = one_sided(clouds, (0.5, 0.3, 2.5))     # the halves nearer a camera
     for points in seen[:2]:
         first.step(points, camera)
         untold.step(points)
@@ -993,8 +991,8 @@ def test_every_way_in_hands_the_fit_the_viewpoint(sample_clouds):
                             fit_source=fit.FitSettings(calibration_frames=2, settle_rounds=1))
     retargeter = Retargeter(load_weights(), config)
     retargeter.set_target(target)
-    camera = clouds[0].mean(axis=0) + np.array([0.5, 0.3, 2.5], np.float32)
-    clouds = np.stack([cloud[cloud[:, 2] > np.median(cloud[:, 2])][:900] for cloud in clouds])
+    clouds, camera = one_sided(clouds, (0.5, 0.3, 2.5))   # the halves nearer a camera
+    clouds = np.stack(clouds)                      # as many points each: retarget_sequence
     stepped = [retargeter.step(cloud, camera).source_joints for cloud in clouds]
     ran = [frame.source_joints for frame in retargeter.run(clouds, camera)]
     np.testing.assert_array_equal(ran, stepped)
