@@ -184,6 +184,8 @@ def run_record(source, target, weights, formats, space, points, seed, config=Pip
                else {}),
             **({"facing_check": True} if config.facing_check and source.kind == "points"
                else {}),
+            **({"skr_view": True} if config.skr_view and weights.skr_view is not None
+               and viewpoint is not None else {}),
             # Recorded only when on, as the others (skeleton sources are never fitted).
             **({"source_fit": list(config.fit_source)} if fitted else {})}
 

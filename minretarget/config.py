@@ -43,13 +43,16 @@ class ModelConfig:
     # Not in the paper: the rest-pose model (minretarget.rest_pose) SMRM's analytic prior uses
     # to allow for the two bodies' rest poses.
     rest_pose: bool = False
+    # Not in the paper: a second SKR of the same sizes, trained on what one depth camera sees
+    # (``Weights.skr_view``; ``skr.read_from_view``), read when a frame comes with its viewpoint.
+    skr_view: bool = False
 
     def __post_init__(self):
         # Accept lists (from JSON) and store tuples so the config stays hashable.
         for field in ("skr_point_widths", "skr_head_widths", "skin_widths",
                       "refine_point_widths", "refine_head_widths"):
             object.__setattr__(self, field, tuple(int(w) for w in getattr(self, field)))
-        for flag in ("smrm_analytic_prior", "rest_pose"):
+        for flag in ("smrm_analytic_prior", "rest_pose", "skr_view"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
         if self.rest_pose and not self.smrm_analytic_prior:
@@ -90,6 +93,10 @@ class ModelConfig:
         """These sizes with no skeleton denoiser (what weights from before it have)."""
         return dataclasses.replace(self, denoise_hidden=0,
                                    denoise_layers=ModelConfig.denoise_layers)
+
+    def with_view_skr(self):
+        """These sizes with a one-view SKR."""
+        return dataclasses.replace(self, skr_view=True)
 
     def to_json(self):
         return json.dumps(dataclasses.asdict(self), sort_keys=True)

@@ -6,6 +6,7 @@ A source frame goes down these stages, in this order (``stages.build_stages`` ma
     stage            module              setting            what it does
     0  thinning      sampling            cloud_points       a seeded subset of each cloud
     1  SKR           skr                 (always)           the cloud's skeleton, regressed
+    1a one view      skr                 skr_view           ... by the one-view SKR, told the camera
     1b mirror        skr                 mirror_source      ... averaged with its mirror image's
     1c refiner       refine              refine             each joint moved by the points near it
     1d facing check  facing              facing_check       a reading facing away read again turned
@@ -45,8 +46,8 @@ from .smoothing import Smoothing, check_smoothing
 _TUPLE_SETTINGS = {"smoothing": (Smoothing, check_smoothing),
                    "foot_lock": (FootLock, check_foot_lock),
                    "fit_source": (FitSettings, check_fit_settings)}
-_FLAGS = ("mirror_target", "mirror_source", "refine", "facing_check", "denoise", "rest_pose",
-          "allow_untrained")
+_FLAGS = ("mirror_target", "mirror_source", "refine", "skr_view", "facing_check", "denoise",
+          "rest_pose", "allow_untrained")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -59,6 +60,8 @@ class PipelineConfig:
     mirror_target: bool = True
     mirror_source: bool = False
     refine: bool = True
+    # A frame given its viewpoint is read by the weights' one-view SKR, if they have one.
+    skr_view: bool = True
     facing_check: bool = True
     fit_source: FitSettings | None = None
     smoothing: Smoothing | None = Smoothing()

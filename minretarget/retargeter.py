@@ -300,7 +300,7 @@ class Retargeter:
         count = self.config.cloud_points
         return points if count is None else seeded_subset(points, count, frame)
 
-    def skeleton(self, points: ArrayLike) -> np.ndarray:
+    def skeleton(self, points: ArrayLike, viewpoint: ArrayLike | None = None) -> np.ndarray:
         """The source skeleton(s) SKR finds, cloud by cloud: mirror-averaged if
         ``mirror_source``, refined if ``refine``; what ``step`` reads before the facing check,
         the source fit, smoothing and denoising.
@@ -308,6 +308,8 @@ class Retargeter:
         Args:
             points: (P, 3) or (T, P, 3) float32 source clouds, metres; with the config's
                 ``cloud_points``, thinned as a stream's frames 0, 1, ... (one cloud: 0).
+            viewpoint: the one depth camera that saw them, (3,) metres, or None: with one,
+                the weights' one-view SKR reads them (config ``skr_view``), if they have one.
         Returns:
             (J, 3) or (T, J, 3) float32 joints, metres; ``step_skeleton`` takes them (with
             their clouds, for the facing check and the source fit).
@@ -318,12 +320,15 @@ class Retargeter:
                              f"and P >= {MIN_POINTS}, got {points.shape}")
         if points.ndim == 3:
             points = np.stack([self._thinned(cloud, t) for t, cloud in enumerate(points)])
+        if viewpoint is not None:
+            viewpoint = as_float32_array(viewpoint, "viewpoint", (3,))
         return self._reader(self.config.mirror_source).read(
-            self._thinned(points, 0) if points.ndim == 2 else points)
+            self._thinned(points, 0) if points.ndim == 2 else points, viewpoint)
 
     def _reader(self, mirrored):
         """SKR's stage (``stages.Reading``) with the config's refiner, ``mirrored`` or not."""
-        return Reading(self.weights, self.config.refine, mirrored, self.workers)
+        return Reading(self.weights, self.config.refine, mirrored, self.workers,
+                       self.config.skr_view)
 
     def pose(self, rotations: ArrayLike, root: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Pose the target: (J, 4) local quaternions and (3,) root, metres -> its (V, 3)
@@ -367,7 +372,7 @@ class Retargeter:
         # SKR on every cloud first (it is stateless: one call, ``workers`` threads), then
         # every other stage frame by frame but the skinning, then the skinning of all frames
         # at once (LBS blends many frames per matrix product).
-        readings = self.skeleton(frames)
+        readings = self.skeleton(frames, viewpoint)
         stages = self._stages[:-1]
         out = [self._fold(Frame(t, cloud, readings[t], viewpoint=viewpoint), stages)
                for t, cloud in enumerate(frames)]

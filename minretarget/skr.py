@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._jit import kernel
-from .conventions import LEFT_AXIS, MIN_POINTS, MIRROR
+from .conventions import FORWARD_AXIS, LEFT_AXIS, MIN_POINTS, MIRROR, UP_AXIS
 from .nn import MLP, dense, mlp
 from .validation import as_float32_array, as_workers
 
@@ -64,6 +64,53 @@ def regress_checked(points, weights, workers):
     else:
         joints = [_regress_joints_one(cloud, weights) for cloud in batch]
     return np.stack(joints) if points.ndim == 3 else joints[0]
+
+
+def view_turn(points, viewpoint):
+    """The turn about the up axis that puts one camera in front of its cloud: the horizontal
+    direction from the cloud's centroid to the camera goes onto +Z (the T-pose's forward).
+    The one-view SKR (``Weights.skr_view``) reads clouds turned so (``read_from_view``): it
+    learns where the body faces from where the camera stands, whatever the world's axes.
+
+    Args:
+        points: (P, 3) float32 the cloud, metres.
+        viewpoint: (3,) the camera's position, metres, in the cloud's frame.
+    Returns:
+        (3, 3) float32 rotation R: a point p turned is R p (``points @ R.T``); the identity
+        when the camera stands straight above or below the centroid.
+    """
+    offset = np.asarray(viewpoint, np.float64) - np.asarray(points, np.float64).mean(axis=0)
+    offset[UP_AXIS] = 0.0
+    length = np.linalg.norm(offset)
+    turn = np.eye(3)
+    if length > 1e-6:
+        # Rows: the camera's horizontal direction, up, and up x that direction, placed so that
+        # R takes them onto forward (+Z), up (+Y) and left (+X): up x forward = left.
+        toward = offset / length
+        up = np.zeros(3)
+        up[UP_AXIS] = 1.0
+        turn[FORWARD_AXIS], turn[UP_AXIS], turn[LEFT_AXIS] = toward, up, np.cross(up, toward)
+    return turn.astype(np.float32)
+
+
+def read_from_view(skeleton, points, viewpoint):
+    """A skeleton finder (clouds (B, P, 3) -> joints (B, J, 3), e.g. the one-view SKR) run on
+    each cloud turned by ``view_turn``, its joints turned back.
+
+    Args:
+        skeleton: the finder, called once a cloud.
+        points: (P, 3) or (B, P, 3) C-contiguous float32 clouds (checked), metres.
+        viewpoint: (3,) the one camera that saw them all, metres.
+    Returns:
+        (J, 3) or (B, J, 3) float32 joints, metres.
+    """
+    batch = points if points.ndim == 3 else points[None]
+    joints = []
+    for cloud in batch:
+        turn = view_turn(cloud, viewpoint)
+        joints.append(skeleton(np.ascontiguousarray(cloud @ turn.T)[None])[0] @ turn)
+    joints = np.ascontiguousarray(np.stack(joints), dtype=np.float32)
+    return joints if points.ndim == 3 else joints[0]
 
 
 def mirror_averaged(skeleton, points):

@@ -33,7 +33,7 @@ from .refine import refine_checked
 from .rest_pose import check_rest_pose
 from .sampling import seeded_subset
 from .skin import linear_blend_skinning
-from .skr import mirror_averaged_checked, regress_checked
+from .skr import mirror_averaged_checked, read_from_view, regress_checked
 from .smoothing import SmoothingState, _parameters, _smooth_kernel, check_smoothing_state
 from .smrm import _NO_REST_POSE, SMRMState, step_checked
 from .smrm import check_state as check_smrm_state
@@ -97,30 +97,41 @@ class Thinning(Stage):
 
 class Reading(Stage):
     """Stage 1: SKR's skeleton of the cloud, refined, mirror-averaged, as asked; a frame that
-    comes with its skeleton (``Retargeter.step_skeleton``) keeps it."""
+    comes with its skeleton (``Retargeter.step_skeleton``) keeps it. A frame that comes with
+    its viewpoint is read by the one-view SKR where the weights have one and ``view`` asks
+    (``skr.read_from_view``; never mirror-averaged: its mirror image is another view)."""
     name = "skr"
     reads_cloud = True
 
-    def __init__(self, weights, refine, mirrored, workers):
+    def __init__(self, weights, refine, mirrored, workers, view=True):
         self.weights, self.workers = weights, workers
         self.refine = refine and weights.refine is not None
         self.mirrored = mirrored
+        self.view = weights.skr_view if view else None
 
-    def read(self, points):
-        """(P, 3) or (B, P, 3) C-contiguous float32 clouds (checked) -> (J, 3) or (B, J, 3)
-        float32 joints."""
-        def skeleton(clouds):
-            joints = regress_checked(clouds, self.weights.skr, self.workers)
-            if self.refine:
-                joints = refine_checked(clouds, joints, self.weights.refine,
-                                        self.weights.config.refine_neighbours)
-            return joints
+    def read(self, points, viewpoint=None):
+        """(P, 3) or (B, P, 3) C-contiguous float32 clouds (checked), and the (3,) viewpoint
+        of the one camera that saw them or None -> (J, 3) or (B, J, 3) float32 joints."""
+        def finder(skr):
+            def skeleton(clouds):
+                joints = regress_checked(clouds, skr, self.workers)
+                if self.refine and (skr is self.weights.skr or _REFINE_VIEW):
+                    joints = refine_checked(clouds, joints, self.weights.refine,
+                                            self.weights.config.refine_neighbours)
+                return joints
+            return skeleton
+        if viewpoint is not None and self.view is not None:
+            return read_from_view(finder(self.view), points, viewpoint)
+        skeleton = finder(self.weights.skr)
         return mirror_averaged_checked(skeleton, points) if self.mirrored else skeleton(points)
 
     def step(self, state, frame):
         if frame.joints is not None:
             return None, frame
-        return None, frame._replace(joints=self.read(frame.points))
+        return None, frame._replace(joints=self.read(frame.points, frame.viewpoint))
+
+
+_REFINE_VIEW = True
 
 
 class FacingCheck(Stage):

@@ -46,6 +46,7 @@ class Weights(NamedTuple):
     refine: RefinerWeights = None    # the joint refiner, if the config has one
     denoise: DenoiserWeights = None  # the skeleton denoiser, if the config has one
     rest_pose: RestPoseWeights = None  # the rest-pose model, if the config has one
+    skr_view: SKRWeights = None      # the one-view SKR, if the config has one
 
 
 class _Shape(tuple):
@@ -101,6 +102,8 @@ def weight_template(config):
             Dense(_Shape((config.denoise_hidden, j * 3)), _Shape((j * 3,))))
     if config.rest_pose:
         stages["rest_pose"] = RestPoseWeights(_Shape((NUM_FEATURES, 3 * NUM_BONES)))
+    if config.skr_view:
+        stages["skr_view"] = skr
     return stages
 
 
@@ -132,7 +135,7 @@ def flatten_weights(weights):
     arrays = {"format_version": np.array(FORMAT_VERSION),
               "config": np.array(weights.config.to_json()),
               "metadata": np.array(json.dumps(weights.metadata, sort_keys=True))}
-    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose"):
+    for stage in ("skr", "smrm", "skin", "refine", "denoise", "rest_pose", "skr_view"):
         if getattr(weights, stage) is not None:
             arrays.update(_leaves(getattr(weights, stage), stage))
     return arrays

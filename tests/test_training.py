@@ -201,6 +201,23 @@ def test_the_rest_pose_model_is_carried_through_training(run, tmp_path):
     assert not plain.config.rest_pose and plain.rest_pose is None
 
 
+def test_a_one_view_skr_is_carried_through_training(run, tmp_path):
+    """smrm --init <file with a one-view SKR> (trained apart, training.skr_view): the export
+    keeps it, array for array."""
+    weights = load_weights(run / "run" / "weights.npz")
+    with_view = weights._replace(config=weights.config.with_view_skr(), skr_view=weights.skr)
+    save_weights(tmp_path / "view.npz", with_view)
+    main(["smrm", "--init", str(tmp_path / "view.npz"), "--recipe", str(run / "tiny.json"),
+          "--data", str(run), "--out", str(tmp_path / "tuned"), "--threads", "1"])
+    tuned = load_weights(tmp_path / "tuned" / "weights.npz")
+    assert tuned.config.skr_view
+    kept, given = flatten_weights(tuned), flatten_weights(with_view)
+    view_keys = [key for key in given if key.startswith("skr_view.")]
+    assert view_keys and set(view_keys) == {key for key in kept if key.startswith("skr_view.")}
+    for key in view_keys:
+        np.testing.assert_array_equal(kept[key], given[key])
+
+
 def weights_without(run, tmp_path, part):
     """The ``all`` run's weights (as loaded) and the same saved to tmp_path/old.npz without
     ``part`` ("refine" or "denoise"), as files from before it were."""

@@ -103,12 +103,14 @@ def refine_runtime_weights(refine):
                           MLP(_linears(refine.hidden), _dense(refine.output)))
 
 
-def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
+def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None, skr_view=None):
     """The torch modules -> minretarget Weights (checked against their config); ``refine``
     the JointRefiner and ``denoise`` the SkeletonDenoiser, if the config has them; SMRM's
-    ``rest_directions`` (its config's ``rest_pose``) become the rest-pose model."""
+    ``rest_directions`` (its config's ``rest_pose``) become the rest-pose model; ``skr_view``
+    the one-view SKR's runtime SKRWeights, carried as they are (``training.skr_view``)."""
     config = smrm.config if refine is not None else smrm.config.without_refiner()
     config = config if denoise is not None else config.without_denoiser()
+    config = config if skr_view is None else config.with_view_skr()
     skr_weights = skr_runtime_weights(skr)
     smrm_weights = SMRMWeights(_gru(smrm.encoder), _gru(smrm.decoder),
                                _dense(smrm.rotation_head), _dense(smrm.root_head),
@@ -121,15 +123,16 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None):
                  else None)
     metadata = with_couplings(with_selection(metadata), refine is not None)
     weights = Weights(config, skr_weights, smrm_weights, skin_weights, metadata,
-                      refine_weights, denoise_weights, rest_pose)
+                      refine_weights, denoise_weights, rest_pose, skr_view)
     # Round-trip through the loader's checks so a wrong export fails here, not at load.
     return weights_from_arrays(flatten_weights(weights), source="exported weights")
 
 
 def export_weights(path, skr, smrm, skin, metadata=None, dtype=np.float32, refine=None,
-                   denoise=None):
+                   denoise=None, skr_view=None):
     """Write the torch modules as one runtime weights file at ``path``."""
-    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine, denoise), dtype=dtype)
+    save_weights(path, runtime_weights(skr, smrm, skin, metadata, refine, denoise, skr_view),
+                 dtype=dtype)
 
 
 
@@ -171,6 +174,19 @@ def _import_gru(gru, layers):
                 getattr(gru, f"{name}_l{i}").copy_(torch.from_numpy(array.copy()))
 
 
+def import_skr(skr, runtime):
+    """The runtime's SKRWeights into a SkeletonRegressor, in place (batch norms folded, as
+    ``import_weights``)."""
+    for net, weights in ((skr.input_transform, runtime.input_transform),
+                         (skr.feature_transform, runtime.feature_transform)):
+        _import_point_layers(net.points, weights.point)
+        _import_head(net.head, weights.head)
+    first = len(skr.first.layers)
+    _import_point_layers(skr.first, runtime.regressor.point[:first])
+    _import_point_layers(skr.rest, runtime.regressor.point[first:])
+    _import_head(skr.head, runtime.regressor.head)
+
+
 def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     """Load runtime Weights into the torch modules, in place (their config must match).
 
@@ -180,8 +196,10 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     # Without a refiner to load, weights from before it (no refiner) fit modules with one;
     # the analytic prior changes what SMRM's rotation head means, not the shapes (see
     # train.initial_models, which then resets that head); the rest-pose model is loaded when
-    # both have one (train.main gives the modules one when the weights have it).
-    mine, theirs = (dataclasses.replace(c, smrm_analytic_prior=False, rest_pose=False)
+    # both have one (train.main gives the modules one when the weights have it); a one-view
+    # SKR is not trained by ``train`` (training.skr_view): the caller carries it along.
+    mine, theirs = (dataclasses.replace(c, smrm_analytic_prior=False, rest_pose=False,
+                                        skr_view=False)
                     for c in (smrm.config, weights.config))
     if refine is None:
         mine, theirs = mine.without_refiner(), theirs.without_refiner()
@@ -190,14 +208,7 @@ def import_weights(weights, skr, smrm, skin, refine=None, denoise=None):
     if mine != theirs:
         raise ValueError(f"the weights' config {weights.config} is not the modules' "
                          f"{smrm.config}")
-    for net, runtime in ((skr.input_transform, weights.skr.input_transform),
-                         (skr.feature_transform, weights.skr.feature_transform)):
-        _import_point_layers(net.points, runtime.point)
-        _import_head(net.head, runtime.head)
-    first = len(skr.first.layers)
-    _import_point_layers(skr.first, weights.skr.regressor.point[:first])
-    _import_point_layers(skr.rest, weights.skr.regressor.point[first:])
-    _import_head(skr.head, weights.skr.regressor.head)
+    import_skr(skr, weights.skr)
     _import_gru(smrm.encoder, weights.smrm.encoder)
     _import_gru(smrm.decoder, weights.smrm.decoder)
     _set_dense(smrm.rotation_head, weights.smrm.rotation_head)

@@ -1090,7 +1090,8 @@ def main(argv=None):
         export_weights(path, models["skr"].cpu(), models["smrm"].cpu(), models["skin"].cpu(),
                        metadata=provenance(recipe, args.data, init, pack, online),
                        refine=models["refine"].cpu() if trained("refine") else None,
-                       denoise=models["denoise"].cpu() if trained("denoise") else None)
+                       denoise=models["denoise"].cpu() if trained("denoise") else None,
+                       skr_view=None if init is None else init.skr_view)   # trained apart
         print(f"exported {path}")
     elif finished:
         print(f"not exported: the stages not trained here ({', '.join(set(own) - set(stages))}) "
