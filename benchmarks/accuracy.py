@@ -3,7 +3,7 @@
     python benchmarks/accuracy.py (--validation | --dances | --motions | --crossed
                                    | --more-dances | --report [--quick]) [--rows ROW ...]
                                   [--weights FILE] [--data DIR] [--cmu DIR] [--json OUT.json] [--markdown OUT.md]
-                                  [--compare OTHER.json]
+                                  [--compare OTHER.json] [--draws K]
     python benchmarks/accuracy.py --from-json OUT.json [--markdown OUT.md] [--compare OTHER.json]
 
 Every test sequence (CMU subjects 08, 11, 12, 14 and aclstm/indian, on fixed unseen bodies) is
@@ -75,6 +75,17 @@ sequences (``paired_difference``), and on how many sequences the model is better
 run over the same sequences (other weights, say: ``against_saved``); a saved run of another
 split, quick against full, or of other sequences (their names, and their lengths where known
 before loading: validation and dances) is refused before the run starts.
+--draws K: the source fit reads a seeded random subset of each cloud, and which points it
+draws moves the figures about as much as the differences judged (docs/source_fit.md, "How far
+the figures move with the points drawn"), a noise the intervals above, paired by sequence, do
+not hold. With K > 1 every row whose retargeter runs the fit (``model`` while the default
+preset is ``fitted``; ``oracle target``; the source-fit rows) and every analytic row on such a
+row's skeletons is run again on the draws 1..K-1 (``FitSettings.draw``); the other rows, which
+do not depend on the draw, run once. The tables and the JSON's "rows", "per_sequence" and the
+rest stay draw 0's; the JSON adds "draws" and "over_draws": each repeated row's pooled figures
+per draw and their mean. With --compare (a run over as many draws; another number is refused
+before the run) the model minus its model is also given draw by draw, with its mean and 95 %
+interval over the draws (Student's t, ``fit_settings.over_draws``).
 --report: score the test split. Without it a run of the test split (the default, or --quick)
 is refused: the test split is run once per release, for the report, and never selects
 anything; weights, settings and rows are chosen on --validation and --dances.
@@ -109,7 +120,7 @@ from minretarget.rest_pose import bone_lengths, prior_reference
 from minretarget.retargeter import Retargeter
 from minretarget.skin import linear_blend_skinning
 from minretarget.weights import DEFAULT_WEIGHTS, file_sha256, load_weights
-from minretarget.pipeline import PRESETS, PipelineConfig
+from minretarget.pipeline import PRESETS, PipelineConfig, as_config
 
 # `training` runs from the checkout (it is not installed): the repository root on the path
 # lets this script, and the benchmarks that import it, load training's datasets.
@@ -310,35 +321,47 @@ def stacked(frames):
     return np.stack([f.joints for f in frames]), np.stack([f.vertices for f in frames])
 
 
-def run_sequence(weights, sequence, wanted=ROWS):
-    """The ``wanted`` rows' (joints, vertices) for one test sequence, and the seconds the
+def run_sequence(weights, sequence, wanted=ROWS, draw=None):
+    """The ``wanted`` rows' (joints, vertices) for one test sequence, the seconds the
     default model took (SKR and the joint refiner over the frames, then smoothing, the
-    denoiser, SMRM, foot contacts, FK and LBS a frame at a time)."""
+    denoiser, SMRM, foot contacts, FK and LBS a frame at a time) and the source skeletons of
+    the rows that keep them. With ``draw``, every source fit reads that draw of the clouds'
+    points (``FitSettings.draw``) and only the wanted rows that the draw moves are made: those
+    whose retargeter runs the fit, and the analytic rows on their skeletons."""
+
+    def on_draw(config="default"):
+        """A retargeter of ``config`` (a preset's name or a PipelineConfig), its source fit, if
+        it has one, on ``draw``."""
+        config = as_config(config)
+        if draw is not None and config.fit_source is not None:
+            config = config.replace(fit_source=config.fit_source._replace(draw=draw))
+        return Retargeter(weights, config)
+
     points = sequence["target_tpose_points"]
-    learned = Retargeter(weights)
+    learned = on_draw()
     learned.set_target(points)
     rig = {"tpose_joints": learned.target.tpose_joints,
            "skin_weights": learned.target.skin_weights}
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
-    paper = Retargeter(weights, "paper")
+    paper = on_draw("paper")
     paper.set_target(points)                         # its own rig: SKR once on the T-pose
-    unrefined = Retargeter(weights, PipelineConfig(refine=False, allow_untrained=True))
+    unrefined = on_draw(PipelineConfig(refine=False, allow_untrained=True))
     unrefined.set_target(points)                     # its own rig: SKR's, not refined
-    no_lock = Retargeter(weights, PipelineConfig(foot_lock=None))
-    no_denoiser = Retargeter(weights, PipelineConfig(denoise=False))
-    no_rest_pose = Retargeter(weights, PipelineConfig(rest_pose=False))
-    no_facing_check = Retargeter(weights, PipelineConfig(facing_check=False))
-    raw = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
-    mirrored = Retargeter(weights, PipelineConfig(mirror_source=True))
-    regressed = Retargeter(weights, "regressed")
-    fitted = (Retargeter(weights, "fitted")
+    no_lock = on_draw(PipelineConfig(foot_lock=None))
+    no_denoiser = on_draw(PipelineConfig(denoise=False))
+    no_rest_pose = on_draw(PipelineConfig(rest_pose=False))
+    no_facing_check = on_draw(PipelineConfig(facing_check=False))
+    raw = on_draw(PipelineConfig(smoothing=None, denoise=False))
+    mirrored = on_draw(PipelineConfig(mirror_source=True))
+    regressed = on_draw("regressed")
+    fitted = (on_draw("fitted")
               if set(FIT_ROWS) & set(wanted) else None)
-    fit_variants = {row: Retargeter(weights, PRESETS["fitted"].replace(**changes))
+    fit_variants = {row: on_draw(PRESETS["fitted"].replace(**changes))
                      for row, changes in FIT_VARIANTS.items() if row in wanted}
-    oracle_rig = Retargeter(weights)
-    oracle_rig_raw = Retargeter(weights, PipelineConfig(smoothing=None, denoise=False))
-    leashed = {row: Retargeter(weights, PipelineConfig(foot_lock=FootLock(max_offset=leash)))
+    oracle_rig = on_draw()
+    oracle_rig_raw = on_draw(PipelineConfig(smoothing=None, denoise=False))
+    leashed = {row: on_draw(PipelineConfig(foot_lock=FootLock(max_offset=leash)))
                for row, leash in zip(LEASH_ROWS, FOOT_LEASHES) if row in wanted}
     for retargeter, this_rig in ((no_lock, rig), (no_denoiser, rig), (no_rest_pose, rig),
                                  (regressed, rig),
@@ -412,12 +435,34 @@ def run_sequence(weights, sequence, wanted=ROWS):
             "oracle both": lambda: stream(oracle_rig_raw, sequence["source_joints"]),
             **{row: functools.partial(lambda r: stacked(streamed(r)), retargeter)
                for row, retargeter in leashed.items()}}
+    # The retargeter each row's figures come from: the rows that run the source fit.
+    made_by = {"model": learned, "regressed preset": regressed, "model, no refiner": unrefined,
+               "model, no denoiser": no_denoiser, "model, no foot lock": no_lock,
+               "model, no rest pose": no_rest_pose, "model, no facing check": no_facing_check,
+               "model, mirrored source": mirrored, "paper preset": paper, "analytic": learned,
+               "analytic, plain": learned, "analytic, mirrored source": mirrored,
+               "model, source fit": fitted, "analytic, source fit": fitted, **fit_variants,
+               "oracle source": raw, "oracle target": oracle_rig, "oracle both": oracle_rig_raw,
+               **leashed}
+    if draw is not None:
+        wanted = [row for row in wanted if made_by[row].config.fit_source is not None]
     rows = {row: make[row]() for row in wanted}
     sources = {row: np.stack([f.source_joints for f in seen[row]()])
                for row in wanted if row in seen}
     sources.update({row: sequence["source_joints"] for row in wanted if "oracle" in row
                     and row != "oracle target"})
     return rows, seconds, sources
+
+
+def sequence_result(rows, sources, sequence):
+    """One sequence's entry of a run's "per_sequence": ``run_sequence``'s rows and source
+    skeletons scored against the sequence's truth."""
+    return {"sequence": str(sequence["name"]), "category": str(sequence["category"]),
+            "target_body": str(sequence["target_body"]),
+            "frames": len(sequence["source_points"]),
+            "metrics": sequence_metrics(rows, sequence),
+            "feet": feet_on_contacts(rows, sequence),
+            "skeleton": skeleton_figures(rows, sources, sequence)}
 
 
 def skeleton_figures(rows, sources, sequence):
@@ -516,6 +561,61 @@ def against_saved(results, saved_results):
                                                     "saved": theirs["metrics"]["model"]}}
              for ours, theirs in zip(results, saved_results)]
     return paired_difference(pairs, "this run", "saved")
+
+
+def pooled_over_draws(per_draw):
+    """Each draw's pooled rows (``summarize``'s "rows", draw 0's first; the later draws' hold
+    only the rows the draw moves) -> for each of those rows, its figures per draw and their
+    mean over the draws (``fit_settings.over_draws``)."""
+    from fit_settings import over_draws       # here, not above: fit_settings imports this
+    repeated = [row for row in per_draw[1] if row not in ("paper", "ground truth")]
+    return {row: {"per_draw": [rows[row] for rows in per_draw],
+                  "mean": over_draws([rows[row] for rows in per_draw])["mean"]}
+            for row in repeated}
+
+
+def against_saved_draws(over, saved_over):
+    """This run's model row against a saved run's over the same draws (both
+    ``pooled_over_draws``), per pooled figure: this run minus the saved one draw by draw, the
+    mean of those differences and its 95 % interval over the draws (Student's t,
+    ``fit_settings.over_draws``; below zero: this run better)."""
+    from fit_settings import over_draws
+    ours, theirs = over["model"]["per_draw"], saved_over["model"]["per_draw"]
+    paired = over_draws(ours, theirs)["minus_first"]
+    return {key: {**paired[key], "per_draw": [a[key] - b[key] for a, b in zip(ours, theirs)]}
+            for key in paired}
+
+
+def draws_sections(saved, other=None, other_name=None):
+    """What a run over several draws adds, from its "draws", "over_draws" and "per_sequence"
+    (``saved``: a run's JSON): the fields for its "compared_with" (with ``other``, a saved run
+    over as many draws, from the file ``other_name``: the model minus its model, draw by draw;
+    else none) and the markdown: each repeated row per draw and its mean, the rows run once,
+    and that comparison."""
+    over, draws = saved["over_draws"], saved["draws"]
+    once = [row for row in saved["per_sequence"][0]["metrics"] if row not in over]
+    table = {f"{row}, {label}": figures for row, kept in over.items()
+             for label, figures in [*((f"draw {d}", f) for d, f in enumerate(kept["per_draw"])),
+                                    (f"mean of {draws}", kept["mean"])]}
+    sections = [markdown_table(table, f"Rows with the source fit over its draws 0-{draws - 1} "
+                                      "(FitSettings.draw: the points each cloud's fit reads), "
+                                      "frame-weighted")
+                + "\n\nRun once (no source fit: the same on every draw): "
+                + (", ".join(once) or "none")]
+    fields = {}
+    if other is not None and "model" in over:
+        fields["model minus its model, over draws"] = against_saved_draws(
+            over, other["over_draws"])
+        lines = [f"**Model minus the model of {other_name}, draw by draw over {draws} draws "
+                 "(frame-weighted; below zero: this run better)**", "",
+                 "| figure | mean difference | 95 % interval (t, over draws) | per draw |",
+                 "|---|---|---|---|"]
+        for key, c in fields["model minus its model, over draws"].items():
+            lines.append(f"| {key} | {c['difference']:+.5f} | [{c['interval'][0]:+.5f}, "
+                         f"{c['interval'][1]:+.5f}] | "
+                         + ", ".join(f"{d:+.5f}" for d in c["per_draw"]) + " |")
+        sections.append("\n".join(lines))
+    return fields, "\n\n".join(sections)
 
 
 def comparison_table(comparison, title):
@@ -655,6 +755,11 @@ def main(argv=None):
     parser.add_argument("--compare", metavar="OTHER.json",
                         help="also compare the model with the model of a saved run on the "
                              "same sequences (other weights, say), sequence by sequence")
+    parser.add_argument("--draws", type=int, default=1, metavar="K",
+                        help="run the rows with the source fit (the model's, when it is the "
+                             "default) on the draws 0..K-1 of the points each cloud's fit "
+                             "reads (FitSettings.draw) and give their figures per draw and "
+                             "mean; the others once (default 1: the shipped draw only)")
     parser.add_argument("--build", action="store_true",
                         help="build DIR/test first if it is absent (about 13 minutes)")
     add_report_option(parser)
@@ -664,11 +769,14 @@ def main(argv=None):
         given = [option for option, value in (
             ("--quick", args.quick), (f"--{selection}", selection), ("--weights", args.weights),
             ("--rows", args.rows != list(ROWS)), ("--build", args.build),
+            ("--draws", args.draws != 1),
             ("--report", args.report)) if value]
         if given:
             parser.error(f"--from-json prints a saved run: {', '.join(given)} would not apply")
     elif args.report and selection:
         parser.error(f"--report is for the test split; --{selection} needs none")
+    if args.draws < 1:
+        parser.error(f"--draws must be at least 1, got {args.draws}")
     saved = load_results(args.from_json) if args.from_json else None
     split = (saved["split"] if saved else SELECTION_SETS[selection][0] if selection
              else "test")
@@ -682,10 +790,20 @@ def main(argv=None):
             parser.error(f"--compare: {args.compare} scored {compared['split']} sequences"
                          f"{' (quick)' if compared.get('quick') else ''}, this run "
                          f"{split}{' (quick)' if quick else ''}")
+        draws = saved.get("draws", 1) if saved else args.draws
+        if compared.get("draws", 1) != draws:
+            parser.error(f"--compare: {args.compare} ran the source fit on "
+                         f"{compared.get('draws', 1)} draws, this run on {draws}: the "
+                         "differences are paired draw by draw")
         other = compared
     if saved:
         summary = summarize(saved["per_sequence"], saved["split"], other, args.compare)
-        text = summary.pop("text") + "\n\n" + weights_note(saved)
+        text = summary.pop("text")
+        if saved.get("draws", 1) > 1:
+            compared, more = draws_sections(saved, other, args.compare)
+            summary.get("compared_with", {}).update(compared)
+            text += "\n\n" + more
+        text += "\n\n" + weights_note(saved)
         print(text)
         if args.markdown:
             write_text(args.markdown, text + "\n")
@@ -720,23 +838,30 @@ def main(argv=None):
         except ValueError as error:
             parser.error(str(error))
     started, results, model_seconds = time.perf_counter(), [], 0.0
+    later_draws = [[] for _ in range(1, args.draws)]    # draws 1..K-1: the rows they move
     for index, load in enumerate(loaders):
         sequence = load()
         rows, seconds, sources = run_sequence(weights, sequence, wanted)
         model_seconds += seconds
-        results.append({"sequence": str(sequence["name"]), "category": str(sequence["category"]),
-                        "target_body": str(sequence["target_body"]),
-                        "frames": len(sequence["source_points"]),
-                        "metrics": sequence_metrics(rows, sequence),
-                        "feet": feet_on_contacts(rows, sequence),
-                        "skeleton": skeleton_figures(rows, sources, sequence)})
+        results.append(sequence_result(rows, sources, sequence))
+        for draw, kept in enumerate(later_draws, 1):
+            rows, _, sources = run_sequence(weights, sequence, wanted, draw)
+            kept.append(sequence_result(rows, sources, sequence))
         print(f"[{index + 1}/{len(loaders)}] {results[-1]['sequence']} "
               f"({results[-1]['frames']} frames): model MPJPE "
               f"{results[-1]['metrics']['model']['MPJPE']:.4f}", flush=True)
 
     seconds = time.perf_counter() - started
     summary = summarize(results, split, other, args.compare)
-    text = summary.pop("text") + "\n\n" + weights_note(record)
+    text = summary.pop("text")
+    if args.draws > 1:      # draw 0's figures stay where one draw's are; the others beside
+        summary.update(draws=args.draws, over_draws=pooled_over_draws(
+            [summary["rows"]] + [summarize(kept, split)["rows"] for kept in later_draws]))
+        compared, more = draws_sections({**summary, "per_sequence": results}, other,
+                                        args.compare)
+        summary.get("compared_with", {}).update(compared)
+        text += "\n\n" + more
+    text += "\n\n" + weights_note(record)
     total_frames = summary["frames"]
     print(text)
     print(f"\n{total_frames} frames in {seconds:.0f} s; model (all stages; SKR and refiner "

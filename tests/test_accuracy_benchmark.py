@@ -12,6 +12,7 @@ from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
 from minretarget.metrics import METRIC_NAMES
 from minretarget.nn import Dense
+from minretarget.pipeline import DEFAULT_PRESET, PRESETS
 from minretarget.retargeter import Retargeter, Target
 from minretarget.weights import checksum_path
 
@@ -333,3 +334,111 @@ def test_the_analytic_row_is_the_model_with_smrms_networks_turned_to_identity(ti
 def test_the_analytic_rows_are_listed_and_paired():
     assert {"analytic", "analytic, plain"} <= set(accuracy.ROWS)
     assert {("model", "analytic"), ("model", "analytic, plain")} <= set(accuracy.PAIRS)
+
+
+# ----------------------------------------------------------------------------- --draws
+
+GOLDEN_WEIGHTS = Path(__file__).resolve().parent / "golden" / "tiny_weights.npz"
+DRAWN_ROWS = ["model", "analytic", "regressed preset"]
+
+
+def fake_test_split(folder, tiny_stream, frames=3, points=1300):
+    """DIR/test with two short sequences: a jittering T-pose as the source (clouds of more
+    points than the source fit reads, so that its draws differ) and the golden target."""
+    from test_contacts import human_tpose
+    target, _, _ = tiny_stream
+    (folder / "test").mkdir()
+    for k in range(2):
+        rng = np.random.default_rng(k)
+        joints = standing_stream(frames, seed=k)
+        clouds = (joints[:, rng.integers(NUM_JOINTS, size=points)]
+                  + rng.normal(0, 0.05, (frames, points, 3))).astype(np.float32)
+        tpose = human_tpose()
+        nearest = np.linalg.norm(target[:, None] - tpose[None], axis=-1).argmin(axis=1)
+        np.savez(folder / "test" / f"s{k}.npz", name=f"s{k}", category="walk",
+                 target_body="b", source_points=clouds, source_joints=joints,
+                 target_points=np.repeat(target[None], frames, axis=0),
+                 target_joints=np.repeat(tpose[None], frames, axis=0),
+                 target_tpose_points=target, target_tpose_joints=tpose,
+                 target_weights=np.eye(NUM_JOINTS, dtype=np.float32)[nearest])
+    return folder
+
+
+def run_draws(folder, out, draws, *extra):
+    accuracy.main(["--data", str(folder), "--report", "--weights", str(GOLDEN_WEIGHTS),
+                   "--rows", *DRAWN_ROWS, "--draws", str(draws), "--json", str(out), *extra])
+    return json.loads(out.read_text())
+
+
+@pytest.fixture(scope="module")
+def drawn_runs(tmp_path_factory, tiny_stream):
+    """The fake test split run over one draw and over two."""
+    folder = fake_test_split(tmp_path_factory.mktemp("split"), tiny_stream)
+    return (folder, run_draws(folder, folder / "one.json", 1),
+            run_draws(folder, folder / "two.json", 2))
+
+
+def test_one_draw_is_the_run_of_before(drawn_runs):
+    """--draws 1 adds nothing, and a run over two draws keeps draw 0's figures where one
+    draw's are."""
+    _, one, two = drawn_runs
+    assert "draws" not in one and "over_draws" not in one
+    assert set(two) - set(one) == {"draws", "over_draws"}
+    assert two["per_sequence"] == one["per_sequence"] and two["rows"] == one["rows"]
+
+
+def test_the_rows_with_the_fit_are_run_on_every_draw(drawn_runs):
+    """The model (the fitted preset) and the analytic row on its skeletons move with the
+    draw; the regressed preset has no fit and runs once; the mean over draws is the mean of
+    the draws' pooled figures, draw 0's those of the run."""
+    assert PRESETS[DEFAULT_PRESET].fit_source is not None
+    _, one, two = drawn_runs
+    over = two["over_draws"]
+    assert two["draws"] == 2 and list(over) == ["model", "analytic"]
+    for row in ("model", "analytic"):
+        first, second = over[row]["per_draw"]
+        assert first == one["rows"][row]
+        assert first["MPJPE"] != second["MPJPE"]
+        for key, mean in over[row]["mean"].items():
+            assert mean == pytest.approx((first[key] + second[key]) / 2)
+    # draw 1's model row, pooled by hand from run_sequence on draw 1
+    weights = accuracy.load_weights(GOLDEN_WEIGHTS)
+    folder = drawn_runs[0]
+    frames, mpjpe = 0, 0.0
+    for path in sorted((folder / "test").glob("*.npz")):
+        sequence = accuracy.load_sequence(path)
+        rows, _, _ = accuracy.run_sequence(weights, sequence, DRAWN_ROWS, draw=1)
+        assert list(rows) == ["model", "analytic"]
+        joints = rows["model"][0]
+        mpjpe += np.linalg.norm(joints - sequence["target_joints"], axis=-1).mean() * len(joints)
+        frames += len(joints)
+    assert over["model"]["per_draw"][1]["MPJPE"] == pytest.approx(mpjpe / frames, rel=1e-5)
+
+
+def test_compare_over_draws_pairs_them_and_refuses_other_draws(drawn_runs, tmp_path, capsys):
+    """--compare over two draws: the model minus the saved model draw by draw; a saved run
+    over another number of draws is refused before any work."""
+    folder, one, two = drawn_runs
+    other = dict(two, over_draws=json.loads(json.dumps(two["over_draws"])))
+    for d, figures in enumerate(other["over_draws"]["model"]["per_draw"]):
+        figures["MPJPE"] += 0.01 * (d + 1)          # the saved model worse by 1 and 2 cm
+    saved, path = tmp_path / "other.json", tmp_path / "this.json"
+    saved.write_text(json.dumps(other))
+    path.write_text(json.dumps(two))
+    accuracy.main(["--from-json", str(path), "--compare", str(saved), "--json", str(path)])
+    assert "draw by draw over 2 draws" in capsys.readouterr().out
+    paired = json.loads(path.read_text())["compared_with"]["model minus its model, over draws"]
+    assert paired["MPJPE"]["per_draw"] == pytest.approx([-0.01, -0.02])
+    assert paired["MPJPE"]["difference"] == pytest.approx(-0.015)
+    low, high = paired["MPJPE"]["interval"]       # t(0.975, 1) * 0.005 / sqrt(2) * sqrt(2)
+    assert (low, high) == pytest.approx([-0.015 - 12.7062 * 0.005, -0.015 + 12.7062 * 0.005],
+                                        rel=1e-4)
+    assert paired["PA-MPJPE"]["per_draw"] == [0.0, 0.0]
+    (tmp_path / "one.json").write_text(json.dumps(one))
+    for argv in (["--from-json", str(path), "--compare", str(tmp_path / "one.json")],
+                 ["--data", str(folder), "--report", "--rows", "model", "--draws", "2",
+                  "--compare", str(tmp_path / "one.json"), "--weights", "absent.npz"]):
+        with pytest.raises(SystemExit) as stop:
+            accuracy.main(argv)
+        assert stop.value.code == 2
+        assert "ran the source fit on 1 draws, this run on 2" in capsys.readouterr().err
