@@ -99,7 +99,9 @@ class Reading(Stage):
     """Stage 1: SKR's skeleton of the cloud, refined, mirror-averaged, as asked; a frame that
     comes with its skeleton (``Retargeter.step_skeleton``) keeps it. A frame that comes with
     its viewpoint is read by the one-view SKR where the weights have one and ``view`` asks
-    (``skr.read_from_view``; never mirror-averaged: its mirror image is another view)."""
+    (``skr.read_from_view``), as it comes: the refiner learned whole clouds' readings (refined,
+    the one-view readings measured worse: docs/single_view.md), and a mirror image would be
+    another view."""
     name = "skr"
     reads_cloud = True
 
@@ -112,26 +114,22 @@ class Reading(Stage):
     def read(self, points, viewpoint=None):
         """(P, 3) or (B, P, 3) C-contiguous float32 clouds (checked), and the (3,) viewpoint
         of the one camera that saw them or None -> (J, 3) or (B, J, 3) float32 joints."""
-        def finder(skr):
-            def skeleton(clouds):
-                joints = regress_checked(clouds, skr, self.workers)
-                if self.refine and (skr is self.weights.skr or _REFINE_VIEW):
-                    joints = refine_checked(clouds, joints, self.weights.refine,
-                                            self.weights.config.refine_neighbours)
-                return joints
-            return skeleton
         if viewpoint is not None and self.view is not None:
-            return read_from_view(finder(self.view), points, viewpoint)
-        skeleton = finder(self.weights.skr)
+            return read_from_view(lambda clouds: regress_checked(clouds, self.view, self.workers),
+                                  points, viewpoint)
+
+        def skeleton(clouds):
+            joints = regress_checked(clouds, self.weights.skr, self.workers)
+            if self.refine:
+                joints = refine_checked(clouds, joints, self.weights.refine,
+                                        self.weights.config.refine_neighbours)
+            return joints
         return mirror_averaged_checked(skeleton, points) if self.mirrored else skeleton(points)
 
     def step(self, state, frame):
         if frame.joints is not None:
             return None, frame
         return None, frame._replace(joints=self.read(frame.points, frame.viewpoint))
-
-
-_REFINE_VIEW = True
 
 
 class FacingCheck(Stage):

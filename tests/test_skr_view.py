@@ -100,21 +100,16 @@ def test_weights_with_a_one_view_skr_round_trip(tiny_weights, tmp_path):
 
 
 def test_a_told_frame_is_read_by_the_one_view_skr(tiny_weights, tiny_stream):
-    """Told the camera, the reading is the one-view SKR's, turned (as ``read_from_view`` with
-    the refiner); untold, or with ``skr_view`` off, the plain SKR's."""
+    """Told the camera, the reading is the one-view SKR's, turned, not refined; untold, or
+    with ``skr_view`` off, the plain SKR's, refined."""
     weights = with_view_skr(tiny_weights, 0.5)
     clouds, camera = one_sided(tiny_stream[1][:2])
     config = preset("fitted")
+    assert config.refine and config.skr_view and weights.refine is not None
     reading = stages.Reading(weights, config.refine, False, 1)
     told = reading.read(clouds[0], camera)
     expected = read_from_view(
         lambda batch: regress_joints(batch, weights.skr_view), clouds[0], camera)
-    if reading.refine:
-        from minretarget.refine import refine_joints
-        expected = read_from_view(
-            lambda batch: refine_joints(batch, regress_joints(batch, weights.skr_view),
-                                        weights.refine, weights.config.refine_neighbours),
-            clouds[0], camera)
     np.testing.assert_allclose(told, expected, atol=1e-5)
     plain = stages.Reading(weights, config.refine, False, 1, view=False).read(clouds[0], camera)
     np.testing.assert_array_equal(plain, reading.read(clouds[0]))
@@ -124,6 +119,9 @@ def test_a_told_frame_is_read_by_the_one_view_skr(tiny_weights, tiny_stream):
                                                     allow_untrained=True), warn=False)
     np.testing.assert_allclose(retargeter.skeleton(clouds[0], camera), told, atol=1e-6)
     np.testing.assert_array_equal(retargeter.skeleton(clouds[0]), plain)
+    off = Retargeter(weights, config.replace(fit_source=None, foot_lock=None, skr_view=False,
+                                             allow_untrained=True), warn=False)
+    np.testing.assert_array_equal(off.skeleton(clouds[0], camera), plain)
 
 
 def test_the_told_reading_matches_the_torch_reference(tmp_path):
@@ -173,3 +171,37 @@ def test_one_view_training_frames_are_the_seen_side_turned_to_face_the_camera(mo
         offset = np.abs(back - (0.0, 1.0, 0.0))
         assert np.allclose(offset.max(axis=1), 0.4, atol=1e-4)      # on the cube's faces
         assert points[:, 2].mean() > turned_joints[0, 2] + 0.05      # the camera's side: +Z
+
+
+def test_every_told_frame_of_a_stream_is_read_by_the_one_view_skr(tiny_weights, tiny_stream,
+                                                                  monkeypatch):
+    """``step(points, viewpoint)``, ``run`` and ``retarget_sequence`` read each told cloud
+    with the one-view SKR and that cloud's camera; ``step(points)`` never does."""
+    weights = with_view_skr(tiny_weights, 0.5)
+    clouds, camera = one_sided(tiny_stream[1][:3])
+    calls = []
+    real = stages.read_from_view
+
+    def spy(skeleton, points, viewpoint):
+        calls.append((points.shape, np.asarray(viewpoint).copy()))
+        return real(skeleton, points, viewpoint)
+    monkeypatch.setattr(stages, "read_from_view", spy)
+    config = preset("fitted").replace(allow_untrained=True)
+    retargeter = Retargeter(weights, config, warn=False)
+    retargeter.set_target(tiny_stream[0])
+    for cloud in clouds:
+        retargeter.step(cloud, camera)
+    assert [shape for shape, _ in calls] == [cloud.shape for cloud in clouds]
+    assert all(np.array_equal(seen, camera) for _, seen in calls)
+    calls.clear()
+    retargeter.reset()
+    list(retargeter.run(clouds, camera))
+    assert len(calls) == len(clouds)
+    calls.clear()
+    retargeter.reset()
+    for cloud in clouds:
+        retargeter.step(cloud)
+    assert not calls
+    same = np.stack([cloud[:min(len(c) for c in clouds)] for cloud in clouds])
+    retargeter.retarget_sequence(same, camera)
+    assert [shape for shape, _ in calls] == [same.shape]

@@ -19,8 +19,9 @@ from the shipped one:
   lies in front (``minretarget.skr.view_turn``), as the runtime turns them
   (``read_from_view``): the network learns where the body faces from the camera.
 - Validation: ``VALIDATION_FRAMES`` frames of the validation split, cameras and points drawn
-  once with their own seed, 2,048 points a cloud (the runtime's); the shipped SKR's error on
-  them (the same turned clouds) is printed first.
+  once with their own seed, 2,048 points a cloud (the runtime's); the error of the SKR it
+  starts from on them (the same turned clouds) is printed first.
+- Start: the ``--init`` file's SKR, or its one-view SKR if it has one (a run continued).
 - Out: ``OUT/skr_view.pt`` (the network's state), ``OUT/log.csv``, and ``OUT/weights.npz``:
   the ``--init`` file with this network as its ``skr_view`` (``Weights.skr_view``).
 """
@@ -107,7 +108,8 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pack", required=True, help="a data pack (python -m training.data pack)")
     parser.add_argument("--init", default="minretarget/data/default_weights.npz",
-                        help="the weights whose SKR it starts from and whose file it extends")
+                        help="the weights whose SKR it starts from (their one-view SKR, if "
+                             "they have one: it is continued) and whose file it extends")
     parser.add_argument("--out", required=True)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--batch", type=int, default=32)
@@ -128,7 +130,7 @@ def main(argv=None):
                                   pack.actor_hip_height, ONLINE_FRAMES, "cpu")
               for split in ("train", "val")}
     model = SkeletonRegressor(init.config)
-    import_skr(model, init.skr)
+    import_skr(model, init.skr if init.skr_view is None else init.skr_view)   # continued
     if args.export_only:
         model.load_state_dict(torch.load(out / "skr_view.pt"))
         with open(out / "log.csv", newline="") as file:
@@ -137,7 +139,7 @@ def main(argv=None):
     val = view_batch(frames["val"], VALIDATION_FRAMES, VALIDATION_POINTS,
                      np.random.default_rng([ONLINE_FRAMES.seed, 7]))
     rows = [{"step": 0, "seconds": 0.0, "loss": float("nan"), "val_mpjpe": joint_error(model, val)}]
-    print(f"the shipped SKR on {VALIDATION_FRAMES} one-view validation frames: "
+    print(f"the SKR it starts from on {VALIDATION_FRAMES} one-view validation frames: "
           f"{1e3 * rows[0]['val_mpjpe']:.1f} mm", flush=True)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
     rng = np.random.default_rng([args.seed, 11])
@@ -172,7 +174,8 @@ def export(model, init, args, rows, out):
     metadata = dict(init.metadata, skr_view={
         "init": str(args.init), "steps": int(rows[-1]["step"]), "batch": args.batch,
         "learning_rate": args.learning_rate, "seed": args.seed, "points": POINTS,
-        "val_mpjpe_before": rows[0]["val_mpjpe"], "val_mpjpe": rows[-1]["val_mpjpe"]})
+        "val_mpjpe_before": rows[0]["val_mpjpe"], "val_mpjpe": rows[-1]["val_mpjpe"],
+        "continued": init.metadata.get("skr_view")})
     weights = init._replace(config=init.config.with_view_skr(), metadata=metadata,
                             skr_view=skr_runtime_weights(model))
     save_weights(out / "weights.npz", weights)
