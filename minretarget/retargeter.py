@@ -320,10 +320,11 @@ class Retargeter:
                              f"and P >= {MIN_POINTS}, got {points.shape}")
         if points.ndim == 3:
             points = np.stack([self._thinned(cloud, t) for t, cloud in enumerate(points)])
-        if viewpoint is not None:
-            viewpoint = as_float32_array(viewpoint, "viewpoint", (3,))
-        return self._reader(self.config.mirror_source).read(
-            self._thinned(points, 0) if points.ndim == 2 else points, viewpoint)
+        points = self._thinned(points, 0) if points.ndim == 2 else points
+        reader = self._reader(self.config.mirror_source)
+        if viewpoint is None:           # the points alone: a subclass's ``read(points)`` works on
+            return reader.read(points)
+        return reader.read(points, as_float32_array(viewpoint, "viewpoint", (3,)))
 
     def _reader(self, mirrored):
         """SKR's stage (``stages.Reading``) with the config's refiner, ``mirrored`` or not."""

@@ -129,7 +129,10 @@ class Reading(Stage):
     def step(self, state, frame):
         if frame.joints is not None:
             return None, frame
-        return None, frame._replace(joints=self.read(frame.points, frame.viewpoint))
+        # The points alone where no camera is given: a subclass's ``read(points)`` works on.
+        joints = (self.read(frame.points) if frame.viewpoint is None
+                  else self.read(frame.points, frame.viewpoint))
+        return None, frame._replace(joints=joints)
 
 
 class FacingCheck(Stage):
