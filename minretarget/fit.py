@@ -1228,13 +1228,15 @@ def _settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, p
     return local, root, joints, cost
 
 
-def fit_frame(model, settings, state, cloud, reading, viewpoint=None):
+def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_depth=False):
     """One frame after the first: -> FitState, joints (J, 3) float64, and whether the fit
     from SKR's reading (or from it with its legs swapped) won. ``viewpoint``: None (the cloud
     covers the body), or the (3,) world position of the one depth camera that saw it: the
-    model's points it would not see are not pulled to the cloud, and the reading's pull
-    leaves the joints' depth along their rays to the motion (SKR, trained on whole bodies,
-    reads one side's joints towards the camera)."""
+    model's points it would not see are not pulled to the cloud, and, unless
+    ``reading_depth``, the reading's pull leaves the joints' depth along their rays to the
+    motion (SKR, trained on whole bodies, reads one side's joints towards the camera; the
+    one-view SKR, trained on such clouds, reads their depth better than the motion foretells
+    it: docs/single_view.md)."""
     t = state.frames
     cloud = subsample(cloud, settings.cloud_points, t, settings.draw)
     reading = np.asarray(reading, np.float64)
@@ -1246,7 +1248,7 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None):
     # the reading's joints are then weighed against the held pose.
     moving = state.cost <= LOST_COST
     predicted = last + 0.5 * (last - before) if moving else last
-    if viewpoint is not None:
+    if viewpoint is not None and not reading_depth:
         reading = _depth_from(reading, predicted, viewpoint)
     misread = np.linalg.norm(reading - predicted, axis=1)        # (J,) metres
     pulls = ((reading_weight(settings, misread), reading),)
@@ -1363,11 +1365,11 @@ def fit_state_from_arrays(arrays, model):
                     calibration, float(arrays["cost"]))
 
 
-def track(model, settings, clouds, readings, viewpoints=None):
+def track(model, settings, clouds, readings, viewpoints=None, reading_depth=False):
     """A whole stream, online (frame t sees frames <= t only): clouds (T, P, 3) (or any
     iterable of (P, 3)), SKR's readings (T, J, 3), and the cameras that saw them (T, 3) (None:
-    whole clouds) -> fitted joints (T, J, 3) float32, and which frames the fit from the
-    reading won (T,) bool."""
+    whole clouds; ``reading_depth`` as ``fit_frame``'s) -> fitted joints (T, J, 3) float32,
+    and which frames the fit from the reading won (T,) bool."""
     fitted, reseeded = [], []
     state = None
     if viewpoints is None:
@@ -1377,7 +1379,8 @@ def track(model, settings, clouds, readings, viewpoints=None):
             state, joints = start_fit(model, settings, cloud, reading, viewpoint)
             won = True
         else:
-            state, joints, won = fit_frame(model, settings, state, cloud, reading, viewpoint)
+            state, joints, won = fit_frame(model, settings, state, cloud, reading, viewpoint,
+                                           reading_depth)
         fitted.append(joints)
         reseeded.append(won)
     return np.asarray(fitted, np.float32), np.asarray(reseeded)

@@ -159,14 +159,16 @@ class FacingCheck(Stage):
 
 class SourceFit(Stage):
     """Stage 1e: the calibrated body model tracked in the cloud; its joints replace the
-    reading (``fit``). A frame without a cloud is left as it is."""
+    reading (``fit``). A frame without a cloud is left as it is. ``reading_depth``: a told
+    frame's reading comes from the one-view SKR, whose depth along the camera's rays the fit
+    keeps (``fit.fit_frame``)."""
     name = "source_fit"
     reads_cloud = True
     State = FitState
     every_frame = False     # it runs on frames with a cloud only
 
-    def __init__(self, settings, warn=True):
-        self.settings, self.warn = settings, warn
+    def __init__(self, settings, warn=True, reading_depth=False):
+        self.settings, self.warn, self.reading_depth = settings, warn, reading_depth
 
     def step(self, state, frame):
         if frame.points is None:
@@ -176,7 +178,7 @@ class SourceFit(Stage):
                                       frame.viewpoint)
         else:
             state, joints, _ = fit_frame(body_model(), self.settings, state, frame.points,
-                                         frame.joints, frame.viewpoint)
+                                         frame.joints, frame.viewpoint, self.reading_depth)
         if state.cost > LOST_COST and self.warn:
             warnings.warn(f"frame {frame.index}: the source fit found no body in this cloud "
                           f"(mean distance {100 * state.cost:.1f} cm); it holds the last "
@@ -315,7 +317,8 @@ def build_stages(weights, config, target, reading, warn=True):
     stages = [Thinning(config.cloud_points) if config.cloud_points is not None else None,
               reading,
               FacingCheck(reading) if config.facing_check else None,
-              SourceFit(config.fit_source, warn) if config.fit_source is not None else None,
+              (SourceFit(config.fit_source, warn, reading_depth=reading.view is not None)
+               if config.fit_source is not None else None),
               JointSmoothing(config.smoothing) if config.smoothing is not None else None,
               Denoising(denoiser) if denoiser is not None else None,
               Retargeting(weights.smrm, tpose, rest_pose),

@@ -205,3 +205,44 @@ def test_every_told_frame_of_a_stream_is_read_by_the_one_view_skr(tiny_weights, 
     same = np.stack([cloud[:min(len(c) for c in clouds)] for cloud in clouds])
     retargeter.retarget_sequence(same, camera)
     assert [shape for shape, _ in calls] == [same.shape]
+
+
+def test_the_fit_keeps_the_one_view_reading_s_depth(tiny_weights, tiny_stream, monkeypatch):
+    """With a one-view SKR the told fit is built to keep the reading's depth
+    (``reading_depth``), without one to take it from the motion; ``fit_frame`` with
+    ``reading_depth`` is the fit with no depth taken from the motion."""
+    from minretarget import fit
+    clouds, camera = one_sided(tiny_stream[1][:3])
+    given = []
+    real = stages.fit_frame
+
+    def spy(*args):
+        given.append(args[5:])
+        return real(*args)
+    monkeypatch.setattr(stages, "fit_frame", spy)
+    config = preset("fitted").replace(allow_untrained=True)
+    for weights, kept in ((with_view_skr(tiny_weights), True), (tiny_weights, False)):
+        given.clear()
+        retargeter = Retargeter(weights, config, warn=False)
+        retargeter.set_target(tiny_stream[0])
+        for cloud in clouds:
+            retargeter.step(cloud, camera)
+        assert len(given) == len(clouds) - 1
+        assert all(np.array_equal(v, camera) and depth is kept for v, depth in given)
+
+    from minretarget.sources import load_sample    # a body, so that the fit finds one
+    source = load_sample()[0]
+    whole = [cloud for cloud, _ in zip(source.frames, range(3))]
+    clouds, camera = one_sided(whole)
+    model = fit.body_model()
+    settings = fit.FitSettings(calibration_frames=1, settle_rounds=0)
+    reading = Retargeter.from_weights(None, warn=False).skeleton(whole[0])
+    state, joints = fit.start_fit(model, settings, clouds[0], reading, camera)
+    state, joints, _ = fit.fit_frame(model, settings, state, clouds[1], joints, camera)
+    reading = joints + (0.04, 0.0, 0.04)     # near the fit, so that it pulls; off in depth
+    kept = fit.fit_frame(model, settings, state, clouds[2], reading, camera, True)[1]
+    moved = fit.fit_frame(model, settings, state, clouds[2], reading, camera)[1]
+    monkeypatch.setattr(fit, "_depth_from", lambda reading, predicted, viewpoint: reading)
+    np.testing.assert_array_equal(
+        kept, fit.fit_frame(model, settings, state, clouds[2], reading, camera)[1])
+    assert np.abs(kept - moved).max() > 1e-4
