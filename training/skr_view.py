@@ -42,7 +42,7 @@ from training.data.pack import load_pack
 from training.export import import_skr, skr_runtime_weights
 from training.losses import skr_loss
 from training.models.skr import SkeletonRegressor
-from training.train import ONLINE_FRAMES, learning_rate
+from training.train import ONLINE_FRAMES, current_commit, learning_rate
 
 POINTS = 512                    # points a training cloud (SKR's recipe's)
 VALIDATION_POINTS = 2048        # points a validation cloud (what the runtime is fed)
@@ -175,7 +175,7 @@ def export(model, init, args, rows, out):
         "init": str(args.init), "steps": int(rows[-1]["step"]), "batch": args.batch,
         "learning_rate": args.learning_rate, "seed": args.seed, "points": POINTS,
         "val_mpjpe_before": rows[0]["val_mpjpe"], "val_mpjpe": rows[-1]["val_mpjpe"],
-        "continued": init.metadata.get("skr_view")})
+        "continued": init.metadata.get("skr_view"), "exported_at_commit": current_commit()})
     weights = init._replace(config=init.config.with_view_skr(), metadata=metadata,
                             skr_view=skr_runtime_weights(model))
     save_weights(out / "weights.npz", weights)
