@@ -999,7 +999,7 @@ def test_every_way_in_hands_the_fit_the_viewpoint(sample_clouds):
     np.testing.assert_allclose(retargeter.retarget_sequence(clouds, camera).source_joints,
                                stepped, atol=1e-5)
     retargeter.reset()
-    readings = retargeter.skeleton(clouds)
+    readings = retargeter.skeleton(clouds, camera)      # the one-view SKR's, as step reads
     given = [retargeter.step_skeleton(reading, cloud, camera).source_joints
              for reading, cloud in zip(readings, clouds)]
     np.testing.assert_allclose(given, stepped, atol=1e-5)
