@@ -7,6 +7,7 @@ A source frame goes down these stages, in this order (``stages.build_stages`` ma
     0  thinning      sampling            cloud_points       a seeded subset of each cloud
     1  SKR           skr                 (always)           the cloud's skeleton, regressed
     1a one view      skr                 skr_view           ... by the one-view SKR, told the camera
+                                                            (then neither mirrored nor refined)
     1b mirror        skr                 mirror_source      ... averaged with its mirror image's
     1c refiner       refine              refine             each joint moved by the points near it
     1d facing check  facing              facing_check       a reading facing away read again turned

@@ -213,9 +213,10 @@ class Retargeter:
 
         ``viewpoint``: where the one depth camera that saw the cloud stands, (3,) metres, in
         the points' frame (a depth sensor's own points: its origin, moved as the points were),
-        or None for a cloud over the whole body. The source fit then fits only the side of
-        its body model that the camera sees (docs/single_view.md); a pipeline without the fit
-        refuses it."""
+        or None for a cloud over the whole body. The one-view SKR then reads the cloud (where
+        the weights have one and the config's ``skr_view`` asks), and the source fit fits only
+        the side of its body model that the camera sees, keeping that reading's depth
+        (docs/single_view.md); a pipeline without the fit refuses it."""
         self._require_target("step")
         points = as_point_cloud(points, "source points", MIN_POINTS)
         if viewpoint is not None:
@@ -228,9 +229,9 @@ class Retargeter:
         """(3,) float32 ``viewpoint`` checked against ``points`` (P, 3); a far camera is
         warned of when ``first`` (a stream's first frame)."""
         if self.config.fit_source is None:
-            raise ValueError(f"a viewpoint is read by the source fit only, and this pipeline "
-                             f"({self.config.preset_name() or 'custom'}) has none: use the "
-                             "'fitted' preset, or give no viewpoint")
+            raise ValueError(f"a viewpoint needs the source fit (it fits the side the camera "
+                             f"sees), and this pipeline ({self.config.preset_name() or 'custom'})"
+                             " has none: use the 'fitted' preset, or give no viewpoint")
         viewpoint = as_float32_array(viewpoint, "viewpoint", (3,))
         distance = float(np.linalg.norm(viewpoint - points.mean(axis=0)))
         if distance < MIN_VIEW_DISTANCE:
@@ -373,10 +374,14 @@ class Retargeter:
         # SKR on every cloud first (it is stateless: one call, ``workers`` threads), then
         # every other stage frame by frame but the skinning, then the skinning of all frames
         # at once (LBS blends many frames per matrix product).
-        readings = self.skeleton(frames, viewpoint)
+        if viewpoint is None:        # the points alone: a subclass's ``skeleton(points)`` works on
+            readings, view_read = self.skeleton(frames), False
+        else:
+            readings = self.skeleton(frames, viewpoint)
+            view_read = self.config.skr_view and self.weights.skr_view is not None
         stages = self._stages[:-1]
-        out = [self._fold(Frame(t, cloud, readings[t], viewpoint=viewpoint), stages)
-               for t, cloud in enumerate(frames)]
+        out = [self._fold(Frame(t, cloud, readings[t], viewpoint=viewpoint, view_read=view_read),
+                          stages) for t, cloud in enumerate(frames)]
         stacked = {name: np.stack([getattr(frame, name) for frame in out])
                    for name in ("posed_joints", "global_rotations", "rotations", "root",
                                 "joints")}

@@ -98,18 +98,17 @@ def read_from_view(skeleton, points, viewpoint):
     each cloud turned by ``view_turn``, its joints turned back.
 
     Args:
-        skeleton: the finder, called once a cloud.
+        skeleton: the finder, called once on all the turned clouds.
         points: (P, 3) or (B, P, 3) C-contiguous float32 clouds (checked), metres.
         viewpoint: (3,) the one camera that saw them all, metres.
     Returns:
         (J, 3) or (B, J, 3) float32 joints, metres.
     """
     batch = points if points.ndim == 3 else points[None]
-    joints = []
-    for cloud in batch:
-        turn = view_turn(cloud, viewpoint)
-        joints.append(skeleton(np.ascontiguousarray(cloud @ turn.T)[None])[0] @ turn)
-    joints = np.ascontiguousarray(np.stack(joints), dtype=np.float32)
+    turns = np.stack([view_turn(cloud, viewpoint) for cloud in batch])          # (B, 3, 3)
+    # One call on every turned cloud: a finder with threads reads them side by side.
+    joints = skeleton(np.ascontiguousarray(np.einsum("bpa,bca->bpc", batch, turns)))
+    joints = np.ascontiguousarray(np.einsum("bja,bac->bjc", joints, turns), dtype=np.float32)
     return joints if points.ndim == 3 else joints[0]
 
 

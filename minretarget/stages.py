@@ -52,6 +52,8 @@ class Frame(NamedTuple):
     vertices: np.ndarray | None = None      # (V, 3) float32 the target's points, posed
     viewpoint: np.ndarray | None = None     # (3,) float32 the one camera that saw the cloud,
                                             # metres (None: it covers the body)
+    view_read: bool = False                 # ``joints`` is the one-view SKR's reading (its
+                                            # depth along the camera's rays its own)
 
 
 class StreamState(NamedTuple):
@@ -129,10 +131,11 @@ class Reading(Stage):
     def step(self, state, frame):
         if frame.joints is not None:
             return None, frame
-        # The points alone where no camera is given: a subclass's ``read(points)`` works on.
-        joints = (self.read(frame.points) if frame.viewpoint is None
-                  else self.read(frame.points, frame.viewpoint))
-        return None, frame._replace(joints=joints)
+        if frame.viewpoint is None or self.view is None:
+            # The points alone: a subclass's ``read(points)`` works on.
+            return None, frame._replace(joints=self.read(frame.points))
+        return None, frame._replace(joints=self.read(frame.points, frame.viewpoint),
+                                    view_read=True)
 
 
 class FacingCheck(Stage):
@@ -151,7 +154,9 @@ class FacingCheck(Stage):
         reference, away = (np.nan, 0) if state is None else state
         joints, reference, away = _check_facing(frame.joints, frame.points, reference, away,
                                                 self.reading.read, TRIGGER, CONFIRM)
-        return FacingState(reference, away), frame._replace(joints=joints)
+        # A reading replaced by one of the cloud half turned is whole-body SKR's, not one view's.
+        kept = frame.view_read and np.array_equal(joints, frame.joints)
+        return FacingState(reference, away), frame._replace(joints=joints, view_read=kept)
 
     def checked(self, state):
         return check_facing_state(state)
@@ -159,16 +164,16 @@ class FacingCheck(Stage):
 
 class SourceFit(Stage):
     """Stage 1e: the calibrated body model tracked in the cloud; its joints replace the
-    reading (``fit``). A frame without a cloud is left as it is. ``reading_depth``: a told
-    frame's reading comes from the one-view SKR, whose depth along the camera's rays the fit
-    keeps (``fit.fit_frame``)."""
+    reading (``fit``). A frame without a cloud is left as it is. A told frame read by the
+    one-view SKR (``Frame.view_read``) keeps that reading's depth along the camera's rays
+    (``fit.fit_frame``'s ``reading_depth``); any other told reading's is the motion's."""
     name = "source_fit"
     reads_cloud = True
     State = FitState
     every_frame = False     # it runs on frames with a cloud only
 
-    def __init__(self, settings, warn=True, reading_depth=False):
-        self.settings, self.warn, self.reading_depth = settings, warn, reading_depth
+    def __init__(self, settings, warn=True):
+        self.settings, self.warn = settings, warn
 
     def step(self, state, frame):
         if frame.points is None:
@@ -178,7 +183,7 @@ class SourceFit(Stage):
                                       frame.viewpoint)
         else:
             state, joints, _ = fit_frame(body_model(), self.settings, state, frame.points,
-                                         frame.joints, frame.viewpoint, self.reading_depth)
+                                         frame.joints, frame.viewpoint, frame.view_read)
         if state.cost > LOST_COST and self.warn:
             warnings.warn(f"frame {frame.index}: the source fit found no body in this cloud "
                           f"(mean distance {100 * state.cost:.1f} cm); it holds the last "
@@ -317,8 +322,7 @@ def build_stages(weights, config, target, reading, warn=True):
     stages = [Thinning(config.cloud_points) if config.cloud_points is not None else None,
               reading,
               FacingCheck(reading) if config.facing_check else None,
-              (SourceFit(config.fit_source, warn, reading_depth=reading.view is not None)
-               if config.fit_source is not None else None),
+              SourceFit(config.fit_source, warn) if config.fit_source is not None else None,
               JointSmoothing(config.smoothing) if config.smoothing is not None else None,
               Denoising(denoiser) if denoiser is not None else None,
               Retargeting(weights.smrm, tpose, rest_pose),

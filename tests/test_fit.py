@@ -998,11 +998,17 @@ def test_every_way_in_hands_the_fit_the_viewpoint(sample_clouds):
     np.testing.assert_array_equal(ran, stepped)
     np.testing.assert_allclose(retargeter.retarget_sequence(clouds, camera).source_joints,
                                stepped, atol=1e-5)
-    retargeter.reset()
-    readings = retargeter.skeleton(clouds, camera)      # the one-view SKR's, as step reads
-    given = [retargeter.step_skeleton(reading, cloud, camera).source_joints
+    # A given skeleton is not the one-view SKR's: its depth is the motion's (``view_read``),
+    # so it matches ``step`` where the one-view SKR is off.
+    plain = Retargeter(load_weights(), config.replace(skr_view=False))
+    plain.set_target(target)
+    plain_stepped = [plain.step(cloud, camera).source_joints for cloud in clouds]
+    plain.reset()
+    readings = plain.skeleton(clouds)
+    given = [plain.step_skeleton(reading, cloud, camera).source_joints
              for reading, cloud in zip(readings, clouds)]
-    np.testing.assert_allclose(given, stepped, atol=1e-5)
+    np.testing.assert_allclose(given, plain_stepped, atol=1e-5)
+    assert np.abs(np.array(plain_stepped) - stepped).max() > 1e-3     # the one-view SKR read
     retargeter.reset()
     assert np.abs(np.array([frame.source_joints for frame in retargeter.run(clouds)])
                   - stepped).max() > 1e-3
@@ -1016,7 +1022,7 @@ def test_a_viewpoint_is_refused_where_it_cannot_be_used(sample_clouds, tiny_weig
     clouds, target = sample_clouds
     regressed = Retargeter(tiny_weights, "regressed")
     regressed.set_target(target)
-    with pytest.raises(ValueError, match="read by the source fit only.*regressed"):
+    with pytest.raises(ValueError, match="needs the source fit.*regressed"):
         regressed.step(clouds[0], (0.0, 1.0, 3.0))
     fitted = Retargeter(load_weights(), "fitted")
     fitted.set_target(target)

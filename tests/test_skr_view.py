@@ -246,3 +246,19 @@ def test_the_fit_keeps_the_one_view_reading_s_depth(tiny_weights, tiny_stream, m
     np.testing.assert_array_equal(
         kept, fit.fit_frame(model, settings, state, clouds[2], reading, camera)[1])
     assert np.abs(kept - moved).max() > 1e-4
+
+
+def test_only_the_one_view_skr_s_reading_is_flagged_as_such(tiny_weights, tiny_stream):
+    """``Frame.view_read`` (the fit keeps such a reading's depth) is set by a told frame's
+    one-view reading only: not untold, not without a one-view SKR, not for a given skeleton."""
+    weights = with_view_skr(tiny_weights, 0.5)
+    clouds, camera = one_sided(tiny_stream[1][:1])
+    cloud = clouds[0]
+    reading = stages.Reading(weights, True, False, 1)
+    for frame, flagged in ((stages.Frame(0, cloud, None, viewpoint=camera), True),
+                           (stages.Frame(0, cloud, None), False),
+                           (stages.Frame(0, cloud, np.zeros((22, 3), np.float32),
+                                         viewpoint=camera), False)):
+        assert reading.step(None, frame)[1].view_read is flagged
+    plain = stages.Reading(tiny_weights, True, False, 1)
+    assert not plain.step(None, stages.Frame(0, cloud, None, viewpoint=camera))[1].view_read

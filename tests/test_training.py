@@ -205,7 +205,10 @@ def test_a_one_view_skr_is_carried_through_training(run, tmp_path):
     """smrm --init <file with a one-view SKR> (trained apart, training.skr_view): the export
     keeps it, array for array."""
     weights = load_weights(run / "run" / "weights.npz")
-    with_view = weights._replace(config=weights.config.with_view_skr(), skr_view=weights.skr)
+    head = weights.skr.regressor.head        # a network unlike the SKR, so a mix-up shows
+    view = weights.skr._replace(regressor=weights.skr.regressor._replace(head=head._replace(
+        output=head.output._replace(weight=head.output.weight * np.float32(0.5)))))
+    with_view = weights._replace(config=weights.config.with_view_skr(), skr_view=view)
     save_weights(tmp_path / "view.npz", with_view)
     main(["smrm", "--init", str(tmp_path / "view.npz"), "--recipe", str(run / "tiny.json"),
           "--data", str(run), "--out", str(tmp_path / "tuned"), "--threads", "1"])

@@ -110,7 +110,7 @@ def runtime_weights(skr, smrm, skin, metadata=None, refine=None, denoise=None, s
     the one-view SKR's runtime SKRWeights, carried as they are (``training.skr_view``)."""
     config = smrm.config if refine is not None else smrm.config.without_refiner()
     config = config if denoise is not None else config.without_denoiser()
-    config = config if skr_view is None else config.with_view_skr()
+    config = dataclasses.replace(config, skr_view=skr_view is not None)
     skr_weights = skr_runtime_weights(skr)
     smrm_weights = SMRMWeights(_gru(smrm.encoder), _gru(smrm.decoder),
                                _dense(smrm.rotation_head), _dense(smrm.root_head),
