@@ -55,7 +55,7 @@ from accuracy import (command_line, comparison_table, frame_weighted, load_measu
 from minretarget.conventions import MIN_POINTS
 from minretarget.metrics import METRIC_NAMES, joint_errors, pa_mpjpe
 from minretarget.pipeline import PRESETS
-from minretarget.retargeter import Retargeter
+from minretarget.retargeter import MIN_VIEW_DISTANCE, Retargeter
 
 sys.path.insert(1, str(Path(__file__).resolve().parent.parent))   # `training`, from the checkout
 from training.data.bodies import body_from_seed, pose_body, sampled_body_seeds  # noqa: E402
@@ -121,8 +121,9 @@ def render_views(sequence, body, cameras, points, seed, index, noise=False):
 
 def run_stream(retargeter, clouds, viewpoints=None):
     """One fresh online stream: ``retargeter.step`` on each cloud of at least ``MIN_POINTS``
-    points (told its camera's position, ``viewpoints`` (T, 3), if given); a frame with fewer
-    is skipped and the last result held.
+    points (told its camera's position, ``viewpoints`` (T, 3), if given); a frame with fewer,
+    or told a camera within ``MIN_VIEW_DISTANCE`` of its centre (which ``step`` refuses: a
+    fixed camera the body walks into), is skipped and the last result held.
 
     Returns:
         joints (T, J, 3), vertices (T, V, 3), source joints SMRM saw (T, J, 3), the (T,) bool
@@ -136,14 +137,17 @@ def run_stream(retargeter, clouds, viewpoints=None):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for t, cloud in enumerate(clouds):
-            if len(cloud) >= MIN_POINTS:
+            usable = len(cloud) >= MIN_POINTS and (
+                viewpoints is None
+                or np.linalg.norm(viewpoints[t] - cloud.mean(axis=0)) >= MIN_VIEW_DISTANCE)
+            if usable:
                 start = time.perf_counter()
                 last = retargeter.step(cloud, None if viewpoints is None else viewpoints[t])
                 seconds += time.perf_counter() - start
             elif last is None:
-                raise ValueError(f"frame {t}: {len(cloud)} points seen before any frame was "
-                                 "retargeted: nothing to hold")
-            seen.append(len(cloud) >= MIN_POINTS)
+                raise ValueError(f"frame {t}: {len(cloud)} points seen (or the camera inside "
+                                 "the body) before any frame was retargeted: nothing to hold")
+            seen.append(usable)
             joints.append(last.joints)
             vertices.append(last.vertices)
             sources.append(last.source_joints)

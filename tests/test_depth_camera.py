@@ -208,3 +208,11 @@ def test_single_view_streams_hold_the_last_result_over_lost_frames(tiny_weights,
     np.testing.assert_allclose(joints[4], last.joints, atol=1e-6)
     with pytest.raises(ValueError, match="frame 0"):
         single_view.run_stream(retargeter, [sources[0][:5]] + clouds)
+    # told a camera inside the body (step refuses it): held too
+    told = Retargeter(tiny_weights, "fitted", warn=False)
+    told.set_target(target)
+    cameras = np.stack([cloud.mean(axis=0) + (0.0, 0.0, 2.5) for cloud in sources[:3]])
+    cameras[1] = sources[1].mean(axis=0) + (0.0, 0.0, 0.1)
+    joints, _, _, seen, _, _ = single_view.run_stream(told, sources[:3], cameras)
+    np.testing.assert_array_equal(seen, [True, False, True])
+    np.testing.assert_array_equal(joints[1], joints[0])
