@@ -378,7 +378,7 @@ class Retargeter:
             readings, view_read = self.skeleton(frames), False
         else:
             readings = self.skeleton(frames, viewpoint)
-            view_read = self.config.skr_view and self.weights.skr_view is not None
+            view_read = self._reader(self.config.mirror_source).view is not None   # as it read
         stages = self._stages[:-1]
         out = [self._fold(Frame(t, cloud, readings[t], viewpoint=viewpoint, view_read=view_read),
                           stages) for t, cloud in enumerate(frames)]

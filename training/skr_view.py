@@ -106,7 +106,8 @@ def joint_error(model, batch, size=64):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--pack", required=True, help="a data pack (python -m training.data pack)")
+    parser.add_argument("--pack", help="a data pack (python -m training.data pack); needed "
+                                       "to train, not with --export-only")
     parser.add_argument("--init", default="minretarget/data/default_weights.npz",
                         help="the weights whose SKR it starts from (their one-view SKR, if "
                              "they have one: it is continued) and whose file it extends")
@@ -124,11 +125,9 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
+    if not args.export_only and args.pack is None:
+        parser.error("--pack is needed to train (python -m training.data pack makes one)")
     init = load_weights(args.init)
-    pack = load_pack(args.pack)
-    frames = {split: OnlineFrames(pack.motions[split], pack.bodies[split],
-                                  pack.actor_hip_height, ONLINE_FRAMES, "cpu")
-              for split in ("train", "val")}
     model = SkeletonRegressor(init.config)
     import_skr(model, init.skr if init.skr_view is None else init.skr_view)   # continued
     if args.export_only:
@@ -136,6 +135,10 @@ def main(argv=None):
         with open(out / "log.csv", newline="") as file:
             rows = [{k: float(v) for k, v in row.items()} for row in csv.DictReader(file)]
         return export(model, init, args, rows, out)
+    pack = load_pack(args.pack)
+    frames = {split: OnlineFrames(pack.motions[split], pack.bodies[split],
+                                  pack.actor_hip_height, ONLINE_FRAMES, "cpu")
+              for split in ("train", "val")}
     val = view_batch(frames["val"], VALIDATION_FRAMES, VALIDATION_POINTS,
                      np.random.default_rng([ONLINE_FRAMES.seed, 7]))
     rows = [{"step": 0, "seconds": 0.0, "loss": float("nan"), "val_mpjpe": joint_error(model, val)}]
