@@ -58,9 +58,10 @@ Only when named in --rows:
                          model, the foot lock
     model, source fit, thinned to 1024  ``model, source fit`` with every cloud thinned to
                          1,024 points (seeded by the frame's index) before SKR
-    model, foot leash X m  the model with the foot lock's leash (``FootLock.max_offset``, the
-                         command line's --foot-leash) X instead of 1 cm: planted toes held
-                         firmer, for X in ``FOOT_LEASHES``
+    model, foot leash X m  the ``regressed`` preset (like the ``no X`` rows: no source fit)
+                         with the foot lock's leash (``FootLock.max_offset``, the command
+                         line's --foot-leash) X instead of 1 cm: planted toes held firmer,
+                         for X in ``FOOT_LEASHES``
 Every row but ``paper`` is averaged over frames. A second table gives foot sliding: the mean
 horizontal speed of the toes over the steps where the ground truth's toes touch the ground
 (``metrics.foot_contacts``, 3 cm), pooled over those steps, and the ground truth's own.
