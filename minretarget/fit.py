@@ -39,7 +39,8 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    (``lost_legs``: a kick neither start followed), its next steps run at a wider robust width
    without the reading's pull, to reach the leg's points again. Where the chosen start's
    cost still fell by more than ``still_falling`` from its race to its settling (the steps
-   have not converged: a fast limb), ``more_iterations`` steps more. A cloud where the body
+   have not converged: a fast limb), ``more_iterations`` steps more (``still_falling_told``
+   where the frame is told its viewpoint). A cloud where the body
    is not found (``LOST_COST``) is skipped: the last pose is held through it.
 4. One camera. Given where the one depth camera that saw the cloud stands (``viewpoint``),
    the model -> cloud term pairs only the model points it would see at each step's pose
@@ -183,7 +184,9 @@ class FitSettings(NamedTuple):
                                    # nearest its legs, also tries each thigh and shin aimed
                                    # at those points (0: never)
     more_iterations: int = 4       # steps more where the chosen start's cost still fell by
-    still_falling: float = 0.003   # more than this (metres) from its race to its settling
+    still_falling: float = 0.002   # more than this (metres) from its race to its settling
+    still_falling_told: float = 0.003  # the same for a frame told its viewpoint: 2 mm made
+                                       # the side view worse (docs/source_fit.md)
     draw: int = 0                  # which seeded subset of each cloud is read: 0 the one a
                                    # pipeline thinned to cloud_points reads too; others, to
                                    # see how far the fit moves with the points drawn
@@ -208,7 +211,8 @@ def check_fit_settings(settings):
             raise ValueError(f"FitSettings.{name} must be an integer >= 0, got {value!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "reading_width",
                  "motion_pull", "reseed_distance", "lost_leg_width", "lost_leg_distance",
-                 "swap_legs_cost", "swap_legs_distance", "stray_share", "still_falling"):
+                 "swap_legs_cost", "swap_legs_distance", "stray_share", "still_falling",
+                 "still_falling_told"):
         value = getattr(settings, name)
         positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
@@ -1300,7 +1304,8 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
                        pulls, *start) for start in starts]
     chosen = min(range(len(settled)), key=lambda index: settled[index][3])
     local, root, joints, cost = settled[chosen]
-    if settings.more_iterations > 0 and starts[chosen][3] - cost > settings.still_falling:
+    falling = settings.still_falling if viewpoint is None else settings.still_falling_told
+    if settings.more_iterations > 0 and starts[chosen][3] - cost > falling:
         # Its cost still fell fast: the fit has not converged (a fast limb); steps more.
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,

@@ -700,8 +700,8 @@ def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
     """The extra steps go by the chosen start's own fall, from its race to its settling, not
     the race winner's: ``_settle`` is replaced by a stand-in that settles the race's winner
     at 50 mm and every aimed start 2 mm (or 5 mm) below its race cost. An aimed start wins;
-    with 2 mm no steps more are taken (the race winner's cost minus the chosen one's is over
-    3 mm), with 5 mm ``more_iterations`` steps are."""
+    with 2 mm no steps more are taken at ``still_falling`` 3 mm (the race winner's cost minus
+    the chosen one's is over 3 mm), with 5 mm ``more_iterations`` steps are."""
     rest, tpose, start, root, held, state = held_in_t_pose(model)
     cloud = fit.pose_model(model, rest, tpose, *fit.forward(
         raised_leg(start, "right", -1.4, 1.4), root, tpose)).points
@@ -723,11 +723,45 @@ def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
         monkeypatch.setattr(fit, "_settle", settle)
         more.clear()
         settings = fit.FitSettings(lost_leg_width=0.0, reading_pull=0.00125,
-                                   motion_pull=0.00125, more_iterations=7)
+                                   motion_pull=0.00125, more_iterations=7, still_falling=0.003)
         fit.fit_frame(model, settings, state, cloud, held)
         assert len(race_costs) >= 2                                  # an aimed start won
         assert race_costs[0] - (min(race_costs[1:]) - fall) > settings.still_falling
         assert more[-1] == steps and sum(more) == steps
+
+
+def test_a_told_frame_goes_on_by_its_own_threshold(model, monkeypatch):
+    """A frame told its viewpoint takes the steps more by ``still_falling_told``, a whole
+    cloud by ``still_falling``: every start settles 2.5 mm below its race cost (a stand-in
+    ``_settle``), between the two thresholds (2 and 3 mm). Untold, ``more_iterations`` steps
+    more are taken; told a camera 3 m in front, none; with the thresholds swapped, the
+    other way round."""
+    rest, tpose, start, root, held, state = held_in_t_pose(model)
+    cloud = fit.pose_model(model, rest, tpose, *fit.forward(
+        raised_leg(start, "right", -0.6, 0.6), root, tpose)).points
+    more = []
+    fit_pose = fit.fit_pose
+
+    def counted(*arguments):
+        more.append(arguments[7].iterations == 7)
+        return fit_pose(*arguments)
+
+    def settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, pulls,
+               local, root, joints, cost):
+        return local, root, joints, cost - 0.0025
+    monkeypatch.setattr(fit, "fit_pose", counted)
+    monkeypatch.setattr(fit, "_settle", settle)
+    camera = root + np.array([0.0, 0.3, 3.0])
+    for untold, told in ((0.002, 0.003), (0.003, 0.002)):
+        settings = fit.FitSettings(lost_leg_width=0.0, stray_share=0.0, reading_pull=0.00125,
+                                   motion_pull=0.00125, more_iterations=7,
+                                   still_falling=untold, still_falling_told=told)
+        took = []
+        for viewpoint in (None, camera):
+            more.clear()
+            fit.fit_frame(model, settings, state, cloud, held, viewpoint)
+            took.append(sum(more))
+        assert took == ([1, 0] if untold < told else [0, 1])
 
 
 def legs_apart_scene(model):
@@ -890,7 +924,8 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
                          ("swap_legs_distance", float("nan")), ("draw", -1), ("draw", 1.5),
-                         ("more_iterations", -1), ("still_falling", -0.001)):
+                         ("more_iterations", -1), ("still_falling", -0.001),
+                         ("still_falling_told", -0.001)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))
