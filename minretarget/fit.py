@@ -185,8 +185,8 @@ class FitSettings(NamedTuple):
                                    # at those points (0: never)
     more_iterations: int = 4       # steps more where the chosen start's cost still fell by
     still_falling: float = 0.002   # more than this (metres) from its race to its settling
-    still_falling_told: float = 0.003  # the same for a frame told its viewpoint: 2 mm made
-                                       # the side view worse (docs/source_fit.md)
+    still_falling_told: float = 0.005  # the same for a frame told its viewpoint: fewer
+                                       # steps suit one view (docs/single_view.md)
     draw: int = 0                  # which seeded subset of each cloud is read: 0 the one a
                                    # pipeline thinned to cloud_points reads too; others, to
                                    # see how far the fit moves with the points drawn
