@@ -449,7 +449,7 @@ def test_every_step_of_a_stream_told_its_camera_is_told_it(model, monkeypatch):
     cloud = posed.points[fit.seen_points(posed, viewpoint)]
     settings = fit.FitSettings(calibration_frames=2, settle_rounds=1, swap_legs_cost=1e-6,
                                stray_share=1e-6, lost_leg_distance=0.005, lost_leg_share=1e-6,
-                               still_falling=0.0)
+                               still_falling=0.0, still_falling_told=0.0)
     readings = np.stack([joints + 0.03 * k for k in range(3)])
     fit.track(model, settings, [cloud] * 3, readings, [viewpoint] * 3)
     for name, told in calls.items():
@@ -679,7 +679,7 @@ def test_a_fit_whose_cost_still_falls_takes_more_steps(model):
     T-pose: the settled fit's cost is still falling fast since the race, and ``more_iterations``
     steps more take it closer to the pose; a cost that fell less than ``still_falling`` takes
     none (the same fit as without them). The cloud is the model's own surface, its costs a
-    quarter of a real cloud's: ``still_falling`` 1 mm here stands for the default's 3."""
+    quarter of a real cloud's: ``still_falling`` 1 mm here stands for the default's 2."""
     rest, tpose, start, root, held, state = held_in_t_pose(model)
     rotations, joints = fit.forward(raised_leg(start, "left", -0.6, 0.6), root, tpose)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
