@@ -696,6 +696,18 @@ def test_a_fit_whose_cost_still_falls_takes_more_steps(model):
     np.testing.assert_array_equal(found[4, 1.0], found[0, 0.001])
 
 
+def steps_more_taken(monkeypatch, iterations):
+    """A list that ``fit.fit_pose`` (spied on) appends to on each call: whether the call ran
+    ``iterations`` steps (set as ``more_iterations``: the steps more, no other call's)."""
+    more, fit_pose = [], fit.fit_pose
+
+    def counted(*arguments):
+        more.append(arguments[7].iterations == iterations)
+        return fit_pose(*arguments)
+    monkeypatch.setattr(fit, "fit_pose", counted)
+    return more
+
+
 def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
     """The extra steps go by the chosen start's own fall, from its race to its settling, not
     the race winner's: ``_settle`` is replaced by a stand-in that settles the race's winner
@@ -705,13 +717,7 @@ def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
     rest, tpose, start, root, held, state = held_in_t_pose(model)
     cloud = fit.pose_model(model, rest, tpose, *fit.forward(
         raised_leg(start, "right", -1.4, 1.4), root, tpose)).points
-    more = []
-    fit_pose = fit.fit_pose
-
-    def counted(*arguments):
-        more.append(arguments[7].iterations == 7)
-        return fit_pose(*arguments)
-    monkeypatch.setattr(fit, "fit_pose", counted)
+    more = steps_more_taken(monkeypatch, 7)
     race_costs = []
     for fall, steps in ((0.002, False), (0.005, True)):
         race_costs.clear()
@@ -739,17 +745,11 @@ def test_a_told_frame_goes_on_by_its_own_threshold(model, monkeypatch):
     rest, tpose, start, root, held, state = held_in_t_pose(model)
     cloud = fit.pose_model(model, rest, tpose, *fit.forward(
         raised_leg(start, "right", -0.6, 0.6), root, tpose)).points
-    more = []
-    fit_pose = fit.fit_pose
-
-    def counted(*arguments):
-        more.append(arguments[7].iterations == 7)
-        return fit_pose(*arguments)
+    more = steps_more_taken(monkeypatch, 7)
 
     def settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, pulls,
                local, root, joints, cost):
         return local, root, joints, cost - 0.0025
-    monkeypatch.setattr(fit, "fit_pose", counted)
     monkeypatch.setattr(fit, "_settle", settle)
     camera = root + np.array([0.0, 0.3, 3.0])
     for untold, told in ((0.002, 0.003), (0.003, 0.002)):
