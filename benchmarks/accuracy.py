@@ -247,12 +247,12 @@ def pose_with_rig(rotations, root, tpose_joints, points, skin_weights):
     return joints, linear_blend_skinning(points, skin_weights, transforms)
 
 
-def analytic_root(source_joints, tpose_joints):
-    """(T, J, 3) source skeletons, the target's (J, 3) T-pose -> (T, 3) roots: each source root
-    scaled by the target's leg length over the mean source leg length so far, as SMRM scales
-    it (``smrm`` step 5, without SMRM's learned offset)."""
+def analytic_root(source_joints, target_leg_length):
+    """(T, J, 3) source skeletons, the target's leg length (``Target.leg_length``, metres) ->
+    (T, 3) roots: each source root scaled by the target's leg length over the mean source leg
+    length so far, as SMRM scales it (``smrm`` step 5, without SMRM's learned offset)."""
     legs = np.cumsum(leg_length(source_joints)) / np.arange(1, len(source_joints) + 1)
-    return (leg_length(tpose_joints) / legs)[:, None] * source_joints[:, 0]
+    return (target_leg_length / legs)[:, None] * source_joints[:, 0]
 
 
 def analytic_plain(source_joints, target):
@@ -262,7 +262,7 @@ def analytic_plain(source_joints, target):
     model's target rig; no rest-pose model, no foot lock.
     (T, J, 3) source skeletons, a ``Target`` -> joints (T, J, 3), vertices (T, V, 3)."""
     return pose_with_rig(analytic_rotations(source_joints, target.tpose_joints),
-                         analytic_root(source_joints, target.tpose_joints),
+                         analytic_root(source_joints, target.leg_length),
                          target.tpose_joints, target.points, target.skin_weights)
 
 
@@ -300,7 +300,7 @@ def analytic_full(source_joints, target, rest_pose=None, foot_lock=None):
                  np.stack([analytic_rotations(joints, prior_reference(rest_pose, tpose, mean))
                            for joints, mean in zip(source_joints,
                                                    lengths.astype(np.float32))]))
-    root = analytic_root(source_joints, tpose).astype(np.float32)
+    root = analytic_root(source_joints, target.leg_length).astype(np.float32)
     state = None
     for t in range(len(rotations) if foot_lock is not None else 0):
         rotations[t], state = plant_feet(rotations[t], root[t], tpose, state, foot_lock)
@@ -339,16 +339,17 @@ def run_sequence(weights, sequence, wanted=ROWS, draw=None):
         return Retargeter(weights, config)
 
     points = sequence["target_tpose_points"]
+    faces = sequence["target_faces"] if "target_faces" in sequence else None    # None: a cloud
     learned = on_draw()
-    learned.set_target(points)
+    learned.set_target(points, faces)            # a mesh: its legs read from its surface
     rig = {"tpose_joints": learned.target.tpose_joints,
-           "skin_weights": learned.target.skin_weights}
+           "skin_weights": learned.target.skin_weights, "leg_length": learned.target.leg_length}
     true_rig = {"tpose_joints": sequence["target_tpose_joints"],
                 "skin_weights": sequence["target_weights"]}
     paper = on_draw("paper")
-    paper.set_target(points)                         # its own rig: SKR once on the T-pose
+    paper.set_target(points, faces)                  # its own rig: SKR once on the T-pose
     unrefined = on_draw(PipelineConfig(refine=False, allow_untrained=True))
-    unrefined.set_target(points)                     # its own rig: SKR's, not refined
+    unrefined.set_target(points, faces)              # its own rig: SKR's, not refined
     no_lock = on_draw(PipelineConfig(foot_lock=None))
     no_denoiser = on_draw(PipelineConfig(denoise=False))
     no_rest_pose = on_draw(PipelineConfig(rest_pose=False))
@@ -371,7 +372,7 @@ def run_sequence(weights, sequence, wanted=ROWS, draw=None):
                                  *((retargeter, rig) for retargeter in fit_variants.values()),
                                  (oracle_rig, true_rig), (oracle_rig_raw, true_rig),
                                  *((retargeter, rig) for retargeter in leashed.values())):
-        retargeter.set_target(points, **this_rig)
+        retargeter.set_target(points, faces, **this_rig)
     clouds = sequence["source_points"]
     kinds = {}
 

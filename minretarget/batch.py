@@ -459,14 +459,16 @@ def _retargeter(args):
 
 
 def _set_target(retargeter, args, points, faces, space):
-    """``cli.set_target`` (``cli.target_of``'s target) with its skeleton and skinning weights
-    computed once per worker for each content, weights, and the pipeline's ``refine`` and
-    ``mirror_target`` (all they depend on; a pair's ``preset`` sets both)."""
+    """``cli.set_target`` (``cli.target_of``'s target) with its skeleton, skinning weights and
+    legs' length computed once per worker for each content, weights, and the pipeline's
+    ``refine`` and ``mirror_target`` (all they depend on; a pair's ``preset`` sets both)."""
     content = _content_hash(points, faces)
     config = retargeter.config
     key = (args.weights, config.refine, config.mirror_target, content)
-    set_target(retargeter, points, faces, args.target, space, *_TARGETS.get(key, (None, None)))
-    _TARGETS[key] = retargeter.target.tpose_joints, retargeter.target.skin_weights
+    set_target(retargeter, points, faces, args.target, space,
+               *_TARGETS.get(key, (None, None, None)))
+    target = retargeter.target
+    _TARGETS[key] = target.tpose_joints, target.skin_weights, target.leg_length
     retargeter.warm_key = args.weights, content
 
 

@@ -85,12 +85,12 @@ def load_retargeter(weights=None, config="default"):
 
 
 def set_target(retargeter, points, faces, name, space=CANONICAL, tpose_joints=None,
-               skin_weights=None):
-    """``retargeter.set_target(points, faces, tpose_joints, skin_weights)``, its errors
-    prefixed with the target's name; warns (``validation.InputWarning``) if it does not look
+               skin_weights=None, leg_length=None):
+    """``retargeter.set_target(points, faces, tpose_joints, skin_weights, leg_length)``, its
+    errors prefixed with the target's name; warns (``validation.InputWarning``) if it does not look
     like a T-pose person in ``space``."""
     try:
-        retargeter.set_target(points, faces, tpose_joints, skin_weights)
+        retargeter.set_target(points, faces, tpose_joints, skin_weights, leg_length)
     except ValueError as error:
         raise ValueError(f"{name}: {error}") from None
     check_body(points, name, space, tpose=True, role="target")

@@ -12,8 +12,9 @@ as the pipeline says) and the target's T-pose skeleton s (J, 3):
        frame, and step 5's heading turn is not needed (the analytic root rotation has it);
        with rest-pose weights (``minretarget.rest_pose``) the prior turns onto x_t the bones of
        s as turned by the two bodies' predicted rest poses, from the mean source bone lengths
-    5. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, where k_t = leg length of s /
-       the mean source leg length over the frames seen so far (the source root scaled to the
+    5. root rotation H_t q_0; root r_t = k_t * x_t[0] + H_t d_t, where k_t = the target's leg
+       length (s's, or as given: the pipeline reads a mesh's from its surface) / the mean
+       source leg length over the frames seen so far (the source root scaled to the
        target's size, then corrected). The mean: with the joint refiner (minretarget.refine)
        the source legs are about right on average, and on validation trials the running mean
        is 2.4 % off the true length (unbiased), the running maximum 4.0 % (3.7 % long, which
@@ -86,7 +87,8 @@ def check_state(weights, state):
                                                                "smrm.frames_seen"))
 
 
-def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None):
+def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None,
+                  target_leg_length=None):
     """Retarget one frame.
 
     Args:
@@ -96,6 +98,8 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None):
         target_tpose: (J, 3) float32 target T-pose joints, metres.
         rest_pose: ``rest_pose.RestPoseWeights`` for the prior to allow for the two bodies'
             rest poses (step 4), or None (the plain analytic prior).
+        target_leg_length: the target's hip-knee-ankle length that scales the root (step 5),
+            metres, or None: ``target_tpose``'s (``kinematics.leg_length``).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new SMRMState.
@@ -105,12 +109,24 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None):
     if state is not None:
         state = check_state(weights, state)
     rest = _NO_REST_POSE if rest_pose is None else check_rest_pose(rest_pose).directions
-    return step_checked(weights, state, source_joints, target_tpose, rest)
+    if target_leg_length is None:
+        target_leg_length = skeleton_leg_length(target_tpose)
+    return step_checked(weights, state, source_joints, target_tpose, rest,
+                        check_leg_length(target_leg_length, "target_leg_length"))
 
 
-def step_checked(weights, state, source_joints, target_tpose, rest_directions):
+def check_leg_length(value, name):
+    """``value`` as a float if it is a finite length > 0 (metres), else a ValueError naming
+    ``name``."""
+    if not np.isscalar(value) or not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a finite length > 0 (metres), got {value!r}")
+    return float(value)
+
+
+def step_checked(weights, state, source_joints, target_tpose, rest_directions,
+                 target_leg_length):
     """``retarget_step`` on checked inputs (``rest_directions``: RestPoseWeights.directions
-    or ``_NO_REST_POSE``): the pipeline's SMRM stage."""
+    or ``_NO_REST_POSE``; ``target_leg_length`` > 0, metres): the pipeline's SMRM stage."""
     if state is None:
         state = initial_state(weights, source_joints)
     encoder_hidden = state.encoder_hidden.copy()
@@ -118,7 +134,7 @@ def step_checked(weights, state, source_joints, target_tpose, rest_directions):
     lengths = state.source_bone_lengths.copy()
     rotations, root = _retarget_step_kernel(
         weights, source_joints, target_tpose, rest_directions, encoder_hidden, decoder_hidden,
-        state.previous_root, lengths, state.frames_seen)
+        state.previous_root, lengths, state.frames_seen, np.float32(target_leg_length))
     return rotations, root, SMRMState(encoder_hidden, decoder_hidden, source_joints[0].copy(),
                                       lengths, state.frames_seen + 1)
 
@@ -127,6 +143,14 @@ def step_checked(weights, state, source_joints, target_tpose, rest_directions):
 # (``kinematics.leg_length``'s), and no rest-pose model.
 LEG_BONES = (3, 6, 4, 7)
 _NO_REST_POSE = np.zeros((0, 3 * NUM_BONES), dtype=np.float32)
+
+
+def skeleton_leg_length(joints):
+    """(J, 3) float32 joints -> their mean hip-knee-ankle chain length (float), metres, as
+    step 5 measures a skeleton's."""
+    lengths = np.empty(NUM_BONES, dtype=np.float32)
+    _bone_lengths_kernel(joints, lengths)
+    return float(_leg_from_bones(lengths))
 
 
 @kernel
@@ -140,10 +164,12 @@ def _leg_from_bones(lengths):
 
 @kernel
 def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions, encoder_hidden,
-                          decoder_hidden, previous_root, source_bone_lengths, frames_seen):
+                          decoder_hidden, previous_root, source_bone_lengths, frames_seen,
+                          target_leg_length):
     """One frame, the module docstring's steps 1-5; updates the hidden states in place, and
     ``source_bone_lengths`` (B,), the mean over ``frames_seen`` frames, to include this one.
     ``rest_directions``: RestPoseWeights.directions, or (0, B*3) for the plain prior.
+    ``target_leg_length``: float32, metres, the numerator of step 5's scale.
     Returns rotations (J, 4) and root (3,)."""
     j = source_joints.shape[0]
     root = source_joints[0]
@@ -194,9 +220,7 @@ def _retarget_step_kernel(weights, source_joints, target_tpose, rest_directions,
             hw * y + hy * w, hw * z - hy * x
     # ... and the root: the source root scaled to the target's size, plus the turned offset
     # (a degenerate source whose legs have no length must not divide by zero)
-    target_lengths = np.empty_like(source_bone_lengths)
-    _bone_lengths_kernel(target_tpose, target_lengths)
-    scale = np.float32(_leg_from_bones(target_lengths)
+    scale = np.float32(target_leg_length
                        / max(_leg_from_bones(source_bone_lengths), np.float32(1e-6)))
     out_root = np.empty(3, dtype=np.float32)
     out_root[0], out_root[1], out_root[2] = turn_about_up(offset[0], offset[1], offset[2],

@@ -246,13 +246,14 @@ class Retargeting(Stage):
     name = "smrm"
     State = SMRMState
 
-    def __init__(self, weights, tpose_joints, rest_pose):
-        self.weights, self.tpose_joints = weights, tpose_joints
+    def __init__(self, weights, target, rest_pose):
+        self.weights, self.tpose_joints = weights, target.tpose_joints
+        self.leg_length = target.leg_length
         self.rest = _NO_REST_POSE if rest_pose is None else check_rest_pose(rest_pose).directions
 
     def step(self, state, frame):
         rotations, root, state = step_checked(self.weights, state, frame.joints,
-                                              self.tpose_joints, self.rest)
+                                              self.tpose_joints, self.rest, self.leg_length)
         return state, frame._replace(rotations=rotations, root=root)
 
     def checked(self, state):
@@ -325,7 +326,7 @@ def build_stages(weights, config, target, reading, warn=True):
               SourceFit(config.fit_source, warn) if config.fit_source is not None else None,
               JointSmoothing(config.smoothing) if config.smoothing is not None else None,
               Denoising(denoiser) if denoiser is not None else None,
-              Retargeting(weights.smrm, tpose, rest_pose),
+              Retargeting(weights.smrm, target, rest_pose),
               Posing(tpose),
               FootPlanting(config.foot_lock, tpose) if config.foot_lock is not None else None,
               Skinning(target)]

@@ -337,19 +337,23 @@ def test_mesh_frames_are_sampled_over_their_surface(tmp_path):
 
 def test_npz_targets(inputs, folder_run, tmp_path, capsys):
     """Issue 41: a .npz was refused as a target (though a source): a result's target, a
-    body's points and faces, one array; the body and faces as from the .ply."""
+    body's points and faces, one array; the body and faces as from the .ply. One array (no
+    faces) gives the same rig, its legs' length (the root's scale) read from its skeleton
+    instead of its surface."""
     np.savez(tmp_path / "body.npz", vertices=inputs["target"], faces=inputs["faces"])
     np.savez(tmp_path / "one.npz", inputs["target"])
     np.savez(tmp_path / "two.npz", a=inputs["target"], b=inputs["target"])
-    expected = load(folder_run / "result.npz")["vertices"]
+    expected = load(folder_run / "result.npz")
     for target in (folder_run / "result.npz", tmp_path / "body.npz", tmp_path / "one.npz"):
         out = tmp_path / target.stem
         assert run("retarget", inputs["dir"] / "frames.npy", target, "--out", out,
                    "--format", "npz", "--weights", WEIGHTS) == 0
         result = load(out / "result.npz")
-        np.testing.assert_allclose(result["vertices"], expected, atol=1e-5)
-        assert len(result["target_faces"]) == (0 if target.stem == "one" else
-                                               len(inputs["faces"]))
+        for key in ("target_tpose_joints", "target_skin_weights"):
+            np.testing.assert_array_equal(result[key], expected[key])
+        mesh = target.stem != "one"
+        assert np.allclose(result["vertices"], expected["vertices"], atol=1e-5) == mesh
+        assert len(result["target_faces"]) == (len(inputs["faces"]) if mesh else 0)
     assert run("retarget", inputs["dir"] / "frames.npy", tmp_path / "two.npz", "--out",
                tmp_path / "x", "--weights", WEIGHTS) == 1
     assert "two.npz: holds a, b; a target .npz holds one (V, 3) array" in capsys.readouterr().err

@@ -103,8 +103,10 @@ def test_gru_layer_step_matches_twin(tiny_weights):
                                atol=1e-6)
 
 
-def test_retarget_step_matches_twin_and_streams(tiny_weights):
-    """Three frames through the kernel against the twin GRU stack and heads."""
+@pytest.mark.parametrize("target_leg_length", [None, 0.9])
+def test_retarget_step_matches_twin_and_streams(tiny_weights, target_leg_length):
+    """Three frames through the kernel against the twin GRU stack and heads; the root scaled
+    by the target skeleton's legs, or by a leg length given."""
     rng = np.random.default_rng(5)
     smrm = tiny_weights.smrm
     tpose = rng.normal(size=(NUM_JOINTS, 3)).astype(np.float32)
@@ -113,7 +115,8 @@ def test_retarget_step_matches_twin_and_streams(tiny_weights):
     hidden = np.zeros((2, len(smrm.encoder), 1, smrm.encoder[0].hidden_weight.shape[0]))
     previous_root, legs = frames[0, 0], []
     for t, joints in enumerate(frames):
-        rotations, root, state = retarget_step(smrm, state, joints, tpose)
+        rotations, root, state = retarget_step(smrm, state, joints, tpose,
+                                               target_leg_length=target_leg_length)
         x, turn = twins.heading_features(joints, previous_root)
         for i, layer in enumerate(smrm.encoder):
             x = hidden[0, i] = twins.gru_layer_step(x, hidden[0, i], layer)
@@ -126,7 +129,8 @@ def test_retarget_step_matches_twin_and_streams(tiny_weights):
         np.testing.assert_allclose(twins.quaternion_to_matrix(rotations), matrices, atol=1e-5)
         np.testing.assert_allclose(np.linalg.norm(rotations, axis=1), 1.0, atol=1e-5)
         legs.append(twins_leg_length(joints))
-        scale = twins_leg_length(tpose) / np.mean(legs)         # mean over the frames so far
+        target_legs = twins_leg_length(tpose) if target_leg_length is None else 0.9
+        scale = target_legs / np.mean(legs)                     # mean over the frames so far
         np.testing.assert_allclose(root, scale * joints[0]
                                    + turn @ twins.dense(x, smrm.root_head, False)[0], atol=1e-5)
         previous_root = joints[0]
@@ -262,6 +266,10 @@ def test_stage_inputs_are_validated(tiny_weights):
         linear_blend_skinning(np.zeros((5, 3)), np.zeros((4, 22)), np.zeros((22, 3, 4)))
     with pytest.raises(ValueError, match="source_joints"):
         retarget_step(tiny_weights.smrm, None, np.zeros((21, 3)), np.zeros((22, 3)))
+    for bad in (0.0, -1.0, float("nan"), np.ones(2)):
+        with pytest.raises(ValueError, match="target_leg_length must be a finite length > 0"):
+            retarget_step(tiny_weights.smrm, None, np.zeros((22, 3)), np.zeros((22, 3)),
+                          target_leg_length=bad)
 
 
 def test_retarget_step_is_equivariant_to_turns_about_up(tiny_weights):

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minretarget import PipelineConfig, Retargeter
+from minretarget import PipelineConfig, Retargeter, stages
+from minretarget.smrm import skeleton_leg_length
 
 
 @pytest.fixture()
@@ -92,6 +93,48 @@ def test_faces_are_checked_and_kept(tiny_weights, tiny_stream):
         retargeter.set_target(tiny_stream[0], np.array([[0.5, 1, 2]]))
     retargeter.set_target(tiny_stream[0], np.zeros((0, 3), int))   # no triangles: a cloud,
     assert retargeter.target.faces is None                        # as the file readers say
+
+
+def test_a_mesh_s_legs_are_read_from_its_surface(tiny_weights, monkeypatch):
+    """A mesh's legs, which scale the root, come from area-uniform samples of its surface:
+    vertices that carry no area (a crowd of 3,000 above the head, in triangles of no area)
+    move its skeleton, read from its points, but not its legs; points without faces, a mesh
+    of no area and a given skeleton keep the skeleton's legs; a length given is kept; SMRM
+    is handed the target's."""
+    with np.load(Path(__file__).parents[1] / "minretarget" / "data" / "sample.npz") as data:
+        points, faces = data["target_points"], data["target_faces"]
+    crowd = points[np.argmax(points[:, 1])] + np.random.default_rng(0).normal(
+        0.0, 0.02, size=(3000, 3)).astype(np.float32) + [0.0, 0.1, 0.0]
+    crowded = np.concatenate([points, crowd])
+    flat = np.repeat(np.arange(len(points), len(crowded))[:, None], 3, axis=1)   # no area
+    targets = {}
+    for name, arguments in (("mesh", (points, faces)),
+                            ("crowded mesh", (crowded, np.concatenate([faces, flat]))),
+                            ("points", (points,)), ("flat mesh", (crowded, flat))):
+        retargeter = Retargeter(tiny_weights)
+        retargeter.set_target(*arguments)
+        targets[name] = retargeter.target
+    assert targets["crowded mesh"].leg_length == targets["mesh"].leg_length
+    assert np.abs(targets["crowded mesh"].tpose_joints
+                  - targets["mesh"].tpose_joints).max() > 1e-3
+    for name in ("points", "flat mesh"):
+        assert targets[name].leg_length == skeleton_leg_length(targets[name].tpose_joints)
+    assert abs(targets["mesh"].leg_length - targets["points"].leg_length) > 1e-4
+    rig = Retargeter(tiny_weights)
+    rig.set_target(points, faces, tpose_joints=targets["points"].tpose_joints)
+    assert rig.target.leg_length == targets["points"].leg_length
+    rig.set_target(points, faces, leg_length=0.8)
+    assert rig.target.leg_length == 0.8
+    with pytest.raises(ValueError, match="leg_length must be a finite length > 0"):
+        rig.set_target(points, leg_length=-0.8)
+    handed, step_checked = [], stages.step_checked
+
+    def spied(*arguments):
+        handed.append(arguments[-1])
+        return step_checked(*arguments)
+    monkeypatch.setattr(stages, "step_checked", spied)
+    rig.step(points[::7])
+    assert handed == [0.8]
 
 
 def test_bad_input_names_the_problem(tiny_weights, retargeter, tiny_stream):
