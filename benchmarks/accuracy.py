@@ -24,10 +24,11 @@ facing far from the heading kept so far read again half turned) with one thing c
                          averaged with those of each cloud's mirror image
     regressed preset     the ``regressed`` preset (SKR's readings, refined, checked for facing,
                          smoothed and denoised): the same as ``model`` while it is the default
-    paper preset         the ``paper`` preset: SKR once on the target T-pose (not mirror-averaged),
-                         SKR's source joints as they come (no refiner, no facing check, no
-                         smoothing, no denoiser), SMRM's plain prior, its rotations as they
-                         come
+    paper preset         the ``paper`` preset: SKR once on the target T-pose (not mirror-averaged;
+                         its legs, which scale the root, read from the mesh's surface, as in
+                         every row), SKR's source joints as they come (no refiner, no facing
+                         check, no smoothing, no denoiser), SMRM's plain prior, its rotations
+                         as they come
     analytic             the model without SMRM's networks, every other stage kept: the
                          model's (smoothed, denoised) source skeletons; per frame SMRM's
                          analytic prior as the model computes it (each bone of the target's

@@ -206,7 +206,8 @@ def minretarget_stages(weights, config, target_points, faces, frames, repeats, w
                                            source_joints[0])
                             if weights.denoise is not None else None),
         "smrm_step": lambda: retarget_step(weights.smrm, state, source_joints,
-                                           target.tpose_joints),
+                                           target.tpose_joints,
+                                           target_leg_length=target.leg_length),
         "fk": lambda: forward_kinematics(rotations, root, target.tpose_joints),
         "lbs": lambda: linear_blend_skinning(target.points, target.skin_weights, transforms),
         "end_to_end": lambda: retargeter.step(cloud()),
@@ -230,6 +231,7 @@ def torch_reference(weights, target):
     reference.target_points = torch.from_numpy(target.points)
     reference.tpose_joints = torch.from_numpy(target.tpose_joints)
     reference.skin_weights = torch.from_numpy(target.skin_weights)
+    reference.leg_length = torch.tensor(target.leg_length, dtype=torch.float32)
     return reference
 
 

@@ -392,7 +392,7 @@ def _quietly(read, args):
 
 _WEIGHTS = {}      # weights path (None: the shipped ones) -> Weights, loaded once per worker
 _TARGETS = {}      # (weights path, refine, mirror_target, target content hash)
-                   # -> (tpose_joints, skin_weights)
+                   # -> (tpose_joints, skin_weights, leg_length)
 _WARMED = set()    # (weights path, target hash, config, skeleton) of the warm-ups done
 _REPORT = [None]   # report((pair name, frames done)) to the batch, or None
 

@@ -116,10 +116,13 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None,
 
 
 def check_leg_length(value, name):
-    """``value`` as a float if it is a finite length > 0 (metres), else a ValueError naming
-    ``name``."""
-    if not np.isscalar(value) or not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a finite length > 0 (metres), got {value!r}")
+    """``value`` as a float if it is a real number of metres a body's legs could measure
+    (1 mm to 1 km: float32 keeps it), else a ValueError naming ``name``."""
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_))
+    if not real or not 1e-3 <= float(value) <= 1e3:
+        raise ValueError(f"{name} must be a length in metres from 0.001 to 1000, got "
+                         f"{value!r}")
     return float(value)
 
 

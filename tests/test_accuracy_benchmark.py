@@ -10,6 +10,7 @@ import pytest
 from conftest import with_rest_pose
 from minretarget.contacts import FootLock
 from minretarget.conventions import JOINT_INDEX, NUM_JOINTS
+from minretarget.kinematics import leg_length
 from minretarget.metrics import METRIC_NAMES
 from minretarget.nn import Dense
 from minretarget.pipeline import DEFAULT_PRESET, PRESETS
@@ -287,6 +288,19 @@ def test_the_analytic_row_without_rest_pose_or_foot_lock_is_the_plain_row():
     plain = accuracy.analytic_plain(joints, target)
     for a, b in zip(full, plain):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_analytic_rows_scale_the_root_by_the_target_s_leg_length():
+    """As SMRM does: the target's ``leg_length`` (a mesh's read from its surface), not its
+    skeleton's, over the source legs' running mean; twice the length, twice the root."""
+    joints, target = standing_stream(), simple_target()
+    longer = target._replace(leg_length=2 * target.leg_length)
+    for analytic in (accuracy.analytic_plain, accuracy.analytic_full):
+        root, twice = (analytic(joints, rig)[0][:, 0] for rig in (target, longer))
+        legs = np.cumsum(leg_length(joints)) / np.arange(1, len(joints) + 1)
+        np.testing.assert_allclose(root, (target.leg_length / legs)[:, None] * joints[:, 0],
+                                   atol=1e-5)
+        np.testing.assert_allclose(twice, 2 * root, atol=1e-5)
 
 
 def test_the_foot_lock_holds_the_analytic_rows_feet_and_moves_only_the_legs():

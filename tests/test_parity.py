@@ -48,6 +48,27 @@ def test_end_to_end_stream_matches_torch_after_export_and_reload(tiny_model, tmp
     np.testing.assert_allclose(rotations, want["rotations"], atol=1e-5)
 
 
+def test_a_mesh_target_matches_torch_given_the_runtime_s_leg_length(tiny_model, tmp_path):
+    """A mesh target's legs, which scale the root, are read from its surface by the runtime;
+    the torch reference, which reads points only, matches it end to end once given that leg
+    length (``ReferenceRetargeter.leg_length``, as benchmarks/speed.py gives it), and not
+    without it."""
+    export_weights(tmp_path / "w.npz", tiny_model.skr, tiny_model.smrm, tiny_model.skin,
+                   {"pipeline": UNCOUPLED}, refine=tiny_model.refine, denoise=tiny_model.denoise)
+    retargeter = Retargeter.from_weights(tmp_path / "w.npz", RAW)
+    target, sources = random_stream(seed=2, frames=20)
+    faces = np.random.default_rng(3).integers(len(target), size=(400, 3))
+    retargeter.set_target(target, faces)
+    got = np.stack([frame.vertices for frame in retargeter.run(sources)])
+    plain = reference_outputs(tiny_model, target, sources)["vertices"]
+    assert np.abs(got - plain).max() > 10 * TOLERANCE
+    tiny_model.set_target(torch.from_numpy(target))
+    tiny_model.leg_length = torch.tensor(retargeter.target.leg_length)
+    want = np.stack([tiny_model.step(torch.from_numpy(points))["vertices"].numpy()
+                     for points in sources])
+    np.testing.assert_allclose(got, want, atol=TOLERANCE)
+
+
 @pytest.mark.parametrize("rest_pose", [False, True])
 def test_smrm_with_the_analytic_prior_matches_torch(tmp_path, rest_pose):
     """SMRM's corrections applied after the analytic rotations: the runtime's kernel (and its

@@ -35,6 +35,9 @@ class ReferenceRetargeter(nn.Module):
         self.refine = JointRefiner(config) if config.refines else None
         self.denoise = SkeletonDenoiser(config) if config.denoises else None
         self.target_points = self.tpose_joints = self.skin_weights = self.state = None
+        # The target's leg length that scales the root (the runtime's ``Target.leg_length``,
+        # which reads a mesh's from its surface), or None: its skeleton's.
+        self.leg_length = None
 
     @torch.no_grad()
     def set_target(self, points):
@@ -42,7 +45,7 @@ class ReferenceRetargeter(nn.Module):
         self.target_points = torch.as_tensor(points, dtype=torch.float32)
         self.tpose_joints = self.skeleton(self.target_points[None])[0]        # (J, 3)
         self.skin_weights = self.skin(self.target_points[None], self.tpose_joints[None])[0]
-        self.state = None
+        self.leg_length = self.state = None
 
     @torch.no_grad()
     def step(self, points):
@@ -70,7 +73,8 @@ class ReferenceRetargeter(nn.Module):
                                                             previous_root, hidden)
             source_joints, denoise_state = denoised[:, 0], (hidden, raw_root)
         rotations, root, joints, smrm_state = self.smrm(
-            source_joints[:, None], self.tpose_joints[None], smrm_state)
+            source_joints[:, None], self.tpose_joints[None], smrm_state,
+            None if self.leg_length is None else self.leg_length[None])
         state = (smrm_state, denoise_state)
         rotations, root, joints = rotations[0, 0], root[0, 0], joints[0, 0]
         _, global_rotations = forward_kinematics(rotations, root, self.tpose_joints)

@@ -124,13 +124,15 @@ class MotionRetargeter(nn.Module):
         return MotionState(zeros, zeros.clone(), first_joints[:, 0, :].clone(),
                            first_joints.new_zeros((b, NUM_BONES)), first_joints.new_zeros(b))
 
-    def forward(self, source_joints, target_tpose, state=None):
+    def forward(self, source_joints, target_tpose, state=None, target_leg_length=None):
         """Retarget a clip (or one frame, T = 1) continuing from ``state``.
 
         Args:
             source_joints: (B, T, J, 3) source joint positions, metres.
             target_tpose: (B, J, 3) target T-pose joints, metres.
             state: MotionState from the previous call, or None to start a stream.
+            target_leg_length: (B,) the targets' leg lengths that scale the root, metres
+                (the runtime's ``Target.leg_length``), or None: ``target_tpose``'s.
         Returns:
             rotations (B, T, J, 4) unit quaternions, root (B, T, 3), joints (B, T, J, 3)
             (FK on the target skeleton), and the MotionState after the last frame.
@@ -161,7 +163,9 @@ class MotionRetargeter(nn.Module):
         # The source root scaled by the mean leg lengths (the same chains as leg_length's),
         # plus the offset.
         legs = lengths[..., list(LEG_BONES)].sum(-1) / 2                 # (B, T)
-        scale = leg_length(target_tpose)[:, None] / legs.clamp_min(1e-6)   # (B, T)
+        if target_leg_length is None:
+            target_leg_length = leg_length(target_tpose)
+        scale = target_leg_length[:, None] / legs.clamp_min(1e-6)          # (B, T)
         offset = turn_vectors(self.root_head(decoded)[:, :, None, :], sin_cos)[:, :, 0, :]
         root = scale[..., None] * source_joints[:, :, 0, :] + offset
         joints, _ = forward_kinematics(rotations, root, target_tpose[:, None])
