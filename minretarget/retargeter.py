@@ -140,6 +140,8 @@ class Retargeter:
                 read from its surface, else its skeleton's.
         """
         points = as_point_cloud(points, "target points", MIN_POINTS)
+        if leg_length is not None:
+            leg_length = check_leg_length(leg_length, "leg_length")
         if faces is not None:
             faces = np.asarray(faces)
             if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype,
@@ -159,8 +161,8 @@ class Retargeter:
                 if leg_length is None and faces is not None:
                     leg_length = self._legs_from_surface(points, faces)
             tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
-            leg_length = check_leg_length(skeleton_leg_length(tpose_joints) if leg_length
-                                          is None else leg_length, "leg_length")
+            if leg_length is None:
+                leg_length = skeleton_leg_length(tpose_joints)
             if skin_weights is None:
                 skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
         skin_weights = as_float32_array(skin_weights, "skin_weights", (len(points), NUM_JOINTS))

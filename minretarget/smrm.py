@@ -109,27 +109,28 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None,
     if state is not None:
         state = check_state(weights, state)
     rest = _NO_REST_POSE if rest_pose is None else check_rest_pose(rest_pose).directions
-    if target_leg_length is None:
-        target_leg_length = skeleton_leg_length(target_tpose)
-    return step_checked(weights, state, source_joints, target_tpose, rest,
-                        check_leg_length(target_leg_length, "target_leg_length"))
+    target_leg_length = (skeleton_leg_length(target_tpose) if target_leg_length is None else
+                         check_leg_length(target_leg_length, "target_leg_length"))
+    return step_checked(weights, state, source_joints, target_tpose, rest, target_leg_length)
+
+
+_FLOAT32_RANGE = float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max)
 
 
 def check_leg_length(value, name):
-    """``value`` as a float if it is a real number of metres a body's legs could measure
-    (1 mm to 1 km: float32 keeps it), else a ValueError naming ``name``."""
+    """``value`` (a length given, metres) as a float if it is a real number > 0 that float32
+    keeps (the kernel's precision), else a ValueError naming ``name``."""
     real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
         value, (bool, np.bool_))
-    if not real or not 1e-3 <= float(value) <= 1e3:
-        raise ValueError(f"{name} must be a length in metres from 0.001 to 1000, got "
-                         f"{value!r}")
+    if not real or not _FLOAT32_RANGE[0] <= float(value) <= _FLOAT32_RANGE[1]:
+        raise ValueError(f"{name} must be a finite length > 0 (metres), got {value!r}")
     return float(value)
 
 
 def step_checked(weights, state, source_joints, target_tpose, rest_directions,
                  target_leg_length):
     """``retarget_step`` on checked inputs (``rest_directions``: RestPoseWeights.directions
-    or ``_NO_REST_POSE``; ``target_leg_length`` > 0, metres): the pipeline's SMRM stage."""
+    or ``_NO_REST_POSE``; ``target_leg_length``, metres): the pipeline's SMRM stage."""
     if state is None:
         state = initial_state(weights, source_joints)
     encoder_hidden = state.encoder_hidden.copy()
