@@ -99,7 +99,7 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None,
         rest_pose: ``rest_pose.RestPoseWeights`` for the prior to allow for the two bodies'
             rest poses (step 4), or None (the plain analytic prior).
         target_leg_length: the target's hip-knee-ankle length that scales the root (step 5),
-            metres, or None: ``target_tpose``'s (``kinematics.leg_length``).
+            metres, or None: ``target_tpose``'s (``skeleton_leg_length``).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new SMRMState.
