@@ -40,8 +40,7 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    without the reading's pull, to reach the leg's points again. Where the chosen start's
    cost still fell by more than ``still_falling`` from its race to its settling (the steps
    have not converged: a fast limb), ``more_iterations`` steps more (``still_falling_told``
-   where the frame is told its viewpoint), and again, up to ``more_rounds`` rounds, while
-   the round before still fell that much. A cloud where the body
+   where the frame is told its viewpoint). A cloud where the body
    is not found (``LOST_COST``) is skipped: the last pose is held through it.
 4. One camera. Given where the one depth camera that saw the cloud stands (``viewpoint``),
    the model -> cloud term pairs only the model points it would see at each step's pose
@@ -188,8 +187,6 @@ class FitSettings(NamedTuple):
     still_falling: float = 0.002   # more than this (metres) from its race to its settling
     still_falling_told: float = 0.005  # the same for a frame told its viewpoint: fewer
                                        # steps suit one view (docs/single_view.md)
-    more_rounds: int = 1           # rounds of more_iterations a frame may take, each only
-                                   # while the round before still fell that much
     draw: int = 0                  # which seeded subset of each cloud is read: 0 the one a
                                    # pipeline thinned to cloud_points reads too; others, to
                                    # see how far the fit moves with the points drawn
@@ -208,7 +205,7 @@ def check_fit_settings(settings):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
-    for name in ("settle_rounds", "draw", "more_iterations", "more_rounds"):
+    for name in ("settle_rounds", "draw", "more_iterations"):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"FitSettings.{name} must be an integer >= 0, got {value!r}")
@@ -1308,16 +1305,11 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
     chosen = min(range(len(settled)), key=lambda index: settled[index][3])
     local, root, joints, cost = settled[chosen]
     falling = settings.still_falling if viewpoint is None else settings.still_falling_told
-    fell = starts[chosen][3] - cost
-    for _ in range(settings.more_rounds if settings.more_iterations > 0 else 0):
-        if fell <= falling:
-            break
+    if settings.more_iterations > 0 and starts[chosen][3] - cost > falling:
         # Its cost still fell fast: the fit has not converged (a fast limb); steps more.
-        before_round = cost
         local, root, joints, cost = fit_pose(
             model, rest, tpose_joints, cloud, grid, local, root,
             settings._replace(iterations=settings.more_iterations), pulls, viewpoint)
-        fell = before_round - cost
     if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
         return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration

@@ -18,10 +18,11 @@ from . import _compile_ahead
 from ._jit import on_first_compile
 from .conventions import MIN_POINTS, NUM_JOINTS
 from .kinematics import forward_kinematics
+from .kinematics import leg_length as legs_of
 from .pipeline import PipelineConfig, as_config, check_pipeline
 from .sampling import sample_point_clouds, seeded_subset, triangle_areas
 from .skin import skinning_weights
-from .smrm import check_leg_length, skeleton_leg_length
+from .smrm import check_leg_length
 from .stages import (Frame, Reading, Skinning, StreamState, build_stages, check_stream_state)
 from .validation import (InputWarning, as_float32_array, as_point_cloud, as_workers,
                          check_body)
@@ -57,6 +58,17 @@ class RetargetedFrame(NamedTuple):
     rotations: np.ndarray       # (J, 4) float32 local joint quaternions (w, x, y, z)
     root: np.ndarray            # (3,) float32 pelvis position, metres
     source_joints: np.ndarray   # (J, 3) float32 the source skeleton SMRM saw, metres
+
+
+def legs_from_surface(reader, points, faces):
+    """The legs' length (metres) that ``reader`` (a ``stages.Reading``) reads from
+    area-uniform samples of a mesh's surface ((V, 3) points, (F, 3) faces), or None if its
+    triangles have no area."""
+    if not triangle_areas(points, faces).sum() > 0:
+        return None
+    clouds = sample_point_clouds(np.broadcast_to(points, (TARGET_READS,) + points.shape),
+                                 faces, TARGET_READ_POINTS, np.random.default_rng(0))
+    return float(legs_of(reader.read(clouds).mean(axis=0)))
 
 
 class Retargeter:
@@ -157,12 +169,13 @@ class Retargeter:
         # last (``_fold`` waits for one it is compiling, and stops it after that frame).
         with on_first_compile(self._compile_ahead):
             if tpose_joints is None:
-                tpose_joints = self._reader(self.config.mirror_target).read(points)
+                reader = self._reader(self.config.mirror_target)
+                tpose_joints = reader.read(points)
                 if leg_length is None and faces is not None:
-                    leg_length = self._legs_from_surface(points, faces)
+                    leg_length = legs_from_surface(reader, points, faces)
             tpose_joints = as_float32_array(tpose_joints, "tpose_joints", (NUM_JOINTS, 3))
             if leg_length is None:
-                leg_length = skeleton_leg_length(tpose_joints)
+                leg_length = float(legs_of(tpose_joints))
             if skin_weights is None:
                 skin_weights = skinning_weights(points, tpose_joints, self.weights.skin)
         skin_weights = as_float32_array(skin_weights, "skin_weights", (len(points), NUM_JOINTS))
@@ -173,16 +186,6 @@ class Retargeter:
         self.target = Target(points, faces, tpose_joints, skin_weights, leg_length)
         self.reset()
         self._build()
-
-    def _legs_from_surface(self, points, faces):
-        """(V, 3) points and (F, 3) faces -> the legs' length (metres) SKR reads from
-        area-uniform samples of the surface, or None if the triangles have no area."""
-        if not triangle_areas(points, faces).sum() > 0:
-            return None
-        clouds = sample_point_clouds(np.broadcast_to(points, (TARGET_READS,) + points.shape),
-                                     faces, TARGET_READ_POINTS, np.random.default_rng(0))
-        reader = self._reader(self.config.mirror_target)
-        return skeleton_leg_length(reader.read(clouds).mean(axis=0))
 
     def _compile_ahead(self):
         if self._compiler is None:

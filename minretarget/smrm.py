@@ -28,7 +28,7 @@ import numpy as np
 
 from ._jit import kernel
 from .analytic import _analytic_frame
-from .kinematics import _quaternion_multiply_one
+from .kinematics import _quaternion_multiply_one, leg_length
 from .conventions import NUM_JOINTS
 from .heading import heading_features, turn_about_up
 # GRULayer lived here once: numba's on-disk caches from then name it minretarget.smrm.GRULayer
@@ -99,7 +99,7 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None,
         rest_pose: ``rest_pose.RestPoseWeights`` for the prior to allow for the two bodies'
             rest poses (step 4), or None (the plain analytic prior).
         target_leg_length: the target's hip-knee-ankle length that scales the root (step 5),
-            metres, or None: ``target_tpose``'s (``skeleton_leg_length``).
+            metres, or None: ``target_tpose``'s (``kinematics.leg_length``).
     Returns:
         rotations (J, 4) float32 unit quaternions (w, x, y, z), root (3,) float32 metres,
         and the new SMRMState.
@@ -109,7 +109,7 @@ def retarget_step(weights, state, source_joints, target_tpose, rest_pose=None,
     if state is not None:
         state = check_state(weights, state)
     rest = _NO_REST_POSE if rest_pose is None else check_rest_pose(rest_pose).directions
-    target_leg_length = (skeleton_leg_length(target_tpose) if target_leg_length is None else
+    target_leg_length = (float(leg_length(target_tpose)) if target_leg_length is None else
                          check_leg_length(target_leg_length, "target_leg_length"))
     return step_checked(weights, state, source_joints, target_tpose, rest, target_leg_length)
 
@@ -147,14 +147,6 @@ def step_checked(weights, state, source_joints, target_tpose, rest_directions,
 # (``kinematics.leg_length``'s), and no rest-pose model.
 LEG_BONES = (3, 6, 4, 7)
 _NO_REST_POSE = np.zeros((0, 3 * NUM_BONES), dtype=np.float32)
-
-
-def skeleton_leg_length(joints):
-    """(J, 3) float32 joints -> their mean hip-knee-ankle chain length (float), metres, as
-    step 5 measures a skeleton's."""
-    lengths = np.empty(NUM_BONES, dtype=np.float32)
-    _bone_lengths_kernel(joints, lengths)
-    return float(_leg_from_bones(lengths))
 
 
 @kernel

@@ -15,7 +15,6 @@ from minretarget.metrics import METRIC_NAMES
 from minretarget.nn import Dense
 from minretarget.pipeline import DEFAULT_PRESET, PRESETS
 from minretarget.retargeter import Retargeter, Target
-from minretarget.smrm import skeleton_leg_length
 from minretarget.weights import checksum_path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -279,7 +278,7 @@ def simple_target(scale=1.1, seed=1):
               + np.random.default_rng(seed + 1).normal(0, 0.03, (300, 3))).astype(np.float32)
     nearest = np.linalg.norm(points[:, None] - tpose[None], axis=-1).argmin(axis=1)
     return Target(points, None, tpose, np.eye(NUM_JOINTS, dtype=np.float32)[nearest],
-                  skeleton_leg_length(tpose))
+                  float(leg_length(tpose)))
 
 
 def test_the_analytic_row_without_rest_pose_or_foot_lock_is_the_plain_row():

@@ -736,43 +736,6 @@ def test_the_fall_is_measured_on_the_start_that_won(model, monkeypatch):
         assert more[-1] == steps and sum(more) == steps
 
 
-def test_rounds_of_steps_more_go_on_while_the_round_before_still_fell(model, monkeypatch):
-    """Up to ``more_rounds`` rounds of ``more_iterations`` steps, each only while the round
-    before it fell by more than ``still_falling`` (2 mm): every start settles 2.5 mm below its
-    race cost (a stand-in ``_settle``), and the rounds' costs fall by 3, 3, 1 and 3 mm (a
-    spied ``fit_pose``). One round allows one, two allow two, five stop after the third (its
-    1 mm fall); with the settling's fall under the threshold, none."""
-    rest, tpose, start, root, held, state = held_in_t_pose(model)
-    cloud = fit.pose_model(model, rest, tpose, *fit.forward(
-        raised_leg(start, "right", -0.6, 0.6), root, tpose)).points
-    falls, fit_pose = (0.003, 0.003, 0.001, 0.003), fit.fit_pose
-    settled, rounds_costs = [], []
-
-    def rounds_falling(*arguments):
-        local, root, joints, cost = fit_pose(*arguments)
-        if arguments[7].iterations == 7:                   # a round of steps more
-            before = rounds_costs[-1] if rounds_costs else min(settled)
-            rounds_costs.append(before - falls[len(rounds_costs)])
-            return local, root, joints, rounds_costs[-1]
-        return local, root, joints, cost
-
-    def settle(model, settings, rest, tpose_joints, cloud, grid, viewpoint, race, pulls,
-               local, root, joints, cost):
-        settled.append(cost - settled_fall)
-        return local, root, joints, settled[-1]
-    monkeypatch.setattr(fit, "fit_pose", rounds_falling)
-    monkeypatch.setattr(fit, "_settle", settle)
-    for settled_fall, rounds, taken in ((0.0025, 1, 1), (0.0025, 2, 2), (0.0025, 5, 3),
-                                        (0.0015, 5, 0)):
-        settled.clear()
-        rounds_costs.clear()
-        settings = fit.FitSettings(lost_leg_width=0.0, stray_share=0.0, reading_pull=0.00125,
-                                   motion_pull=0.00125, more_iterations=7, more_rounds=rounds)
-        fitted, _, _ = fit.fit_frame(model, settings, state, cloud, held)
-        assert len(rounds_costs) == taken
-        assert fitted.cost == (rounds_costs[-1] if taken else min(settled))
-
-
 def test_a_told_frame_goes_on_by_its_own_threshold(model, monkeypatch):
     """A frame told its viewpoint takes the steps more by ``still_falling_told``, a whole
     cloud by ``still_falling``: every start settles 2.5 mm below its race cost (a stand-in
@@ -962,7 +925,7 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
                          ("swap_legs_distance", float("nan")), ("draw", -1), ("draw", 1.5),
                          ("more_iterations", -1), ("still_falling", -0.001),
-                         ("still_falling_told", -0.001), ("more_rounds", -1)):
+                         ("still_falling_told", -0.001)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):
             Retargeter(tiny_weights, PipelineConfig(
                 fit_source=fit.FitSettings()._replace(**{field: value})))

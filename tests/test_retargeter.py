@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from minretarget import PipelineConfig, Retargeter, stages
-from minretarget.smrm import skeleton_leg_length
+from minretarget.kinematics import leg_length
 
 
 @pytest.fixture()
@@ -118,7 +118,7 @@ def test_a_mesh_s_legs_are_read_from_its_surface(tiny_weights, monkeypatch):
     assert np.abs(targets["crowded mesh"].tpose_joints
                   - targets["mesh"].tpose_joints).max() > 1e-3
     for name in ("points", "flat mesh"):
-        assert targets[name].leg_length == skeleton_leg_length(targets[name].tpose_joints)
+        assert targets[name].leg_length == float(leg_length(targets[name].tpose_joints))
     assert abs(targets["mesh"].leg_length - targets["points"].leg_length) > 1e-4
     rig = Retargeter(tiny_weights)
     rig.set_target(points, faces, tpose_joints=targets["points"].tpose_joints)
