@@ -166,6 +166,8 @@ class FitSettings(NamedTuple):
     race_iterations: int = 2       # steps from each start before the best one goes on
     model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
+    calibration_frames_told: int = 15  # the same for a stream told its viewpoint
+    calibration_stride_told: int = 1   # ... of which every k-th is kept
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
     lost_leg_width: float = 0.1    # metres: robust width of the steps that find a lost lower
                                    # leg again (0: never looked for)
@@ -201,7 +203,7 @@ def check_fit_settings(settings):
         raise TypeError(f"fit_source must be a fit.FitSettings or None, got "
                         f"{type(settings).__name__}")
     for name in ("iterations", "cloud_points", "race_iterations", "model_stride",
-                 "calibration_frames"):
+                 "calibration_frames", "calibration_frames_told", "calibration_stride_told"):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
@@ -1313,10 +1315,13 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
     if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
         return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration
-    if t < settings.calibration_frames:
-        calibration = calibration + ((cloud, grid, local, root, viewpoint),)
-        shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
-        if t == settings.calibration_frames - 1:
+    calibrating, stride = ((settings.calibration_frames, 1) if viewpoint is None else
+                           (settings.calibration_frames_told, settings.calibration_stride_told))
+    if t < calibrating:
+        if t % stride == 0:
+            calibration = calibration + ((cloud, grid, local, root, viewpoint),)
+            shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
+        if t == calibrating - 1:
             shape = settle_shape(model, shape, calibration, settings)
             rest, tpose_joints = shaped(model, shape)
             local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid,
