@@ -862,6 +862,36 @@ def test_combined_pull_sums_per_joint_and_skips_pulls_that_are_off():
     assert not total.any() and np.isfinite(goal).all()
 
 
+def test_a_told_stream_calibrates_on_its_own_frames(model, monkeypatch):
+    """A stream told its camera keeps every ``calibration_stride_told``-th of its first
+    ``calibration_frames_told`` frames for the shape and settles on them at the last; a whole
+    cloud's stream keeps each of its first ``calibration_frames``."""
+    settled = []
+    settle_shape = fit.settle_shape
+
+    def spy_settle(model, shape, frames, settings, told=False):
+        settled.append((len(frames), told))
+        return settle_shape(model, shape, frames, settings, told)
+
+    monkeypatch.setattr(fit, "settle_shape", spy_settle)
+    _, rest, tpose, _, _, rotations, joints = posed_state(model, seed=3, turn=0.1)
+    viewpoint = joints[0] + np.array([0.2, 0.3, 2.5])
+    posed = fit.pose_model(model, rest, tpose, rotations, joints)
+    settings = fit.FitSettings(calibration_frames=2, calibration_frames_told=5,
+                               calibration_stride_told=2, settle_rounds=1)
+    for cloud, camera, kept, settles in (
+            (posed.points, None, [1, 2, 0, 0], [(2, False)]),
+            (posed.points[fit.seen_points(posed, viewpoint)], viewpoint, [1, 1, 2, 2, 3, 0],
+             [(3, True)])):
+        settled.clear()
+        state, _ = fit.start_fit(model, settings, cloud, joints, camera)
+        counts = [len(state.calibration)]
+        for _ in kept[1:]:
+            state, _, _ = fit.fit_frame(model, settings, state, cloud, joints, camera)
+            counts.append(len(state.calibration))
+        assert counts == kept and settled == settles
+
+
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
     shape, rest, tpose, _, _, rotations, joints = posed_state(model, seed=9, turn=0.1)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
