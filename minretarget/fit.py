@@ -166,11 +166,11 @@ class FitSettings(NamedTuple):
     race_iterations: int = 2       # steps from each start before the best one goes on
     model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
-    calibration_frames_told: int = 15  # the same for a stream told its viewpoint
-    calibration_stride_told: int = 1   # ... of which every k-th is kept
     settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
-    settle_rounds_told: int = 3    # the same for a stream told its viewpoint, each round's
-    settle_steps_told: int = 4     # poses taking this many Gauss-Newton steps
+    settle_rounds_told: int = 40   # the same for a stream told its viewpoint, each round's
+    settle_steps_told: int = 1     # poses taking this many Gauss-Newton steps: from one side
+                                   # a leg's length and its bend along the ray converge slowly
+                                   # together (docs/single_view.md)
     lost_leg_width: float = 0.1    # metres: robust width of the steps that find a lost lower
                                    # leg again (0: never looked for)
     lost_leg_distance: float = 0.08  # metres: a lower leg's model point this far from the
@@ -205,8 +205,7 @@ def check_fit_settings(settings):
         raise TypeError(f"fit_source must be a fit.FitSettings or None, got "
                         f"{type(settings).__name__}")
     for name in ("iterations", "cloud_points", "race_iterations", "model_stride",
-                 "calibration_frames", "calibration_frames_told", "calibration_stride_told",
-                 "settle_steps_told"):
+                 "calibration_frames", "settle_steps_told"):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
@@ -1322,13 +1321,10 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
     if cost > LOST_COST:        # no body here: hold the last pose, keep the motion as it was
         return state._replace(frames=t + 1, cost=cost), last, reseeded
     shape, calibration = state.shape, state.calibration
-    calibrating, stride = ((settings.calibration_frames, 1) if viewpoint is None else
-                           (settings.calibration_frames_told, settings.calibration_stride_told))
-    if t < calibrating:
-        if t % stride == 0:
-            calibration = calibration + ((cloud, grid, local, root, viewpoint),)
-            shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
-        if t == calibrating - 1:
+    if t < settings.calibration_frames:
+        calibration = calibration + ((cloud, grid, local, root, viewpoint),)
+        shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
+        if t == settings.calibration_frames - 1:
             shape = settle_shape(model, shape, calibration, settings, viewpoint is not None)
             rest, tpose_joints = shaped(model, shape)
             local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid,

@@ -862,34 +862,39 @@ def test_combined_pull_sums_per_joint_and_skips_pulls_that_are_off():
     assert not total.any() and np.isfinite(goal).all()
 
 
-def test_a_told_stream_calibrates_on_its_own_frames(model, monkeypatch):
-    """A stream told its camera keeps every ``calibration_stride_told``-th of its first
-    ``calibration_frames_told`` frames for the shape and settles on them at the last; a whole
-    cloud's stream keeps each of its first ``calibration_frames``."""
-    settled = []
-    settle_shape = fit.settle_shape
+def test_a_told_stream_settles_by_its_own_rounds(model, monkeypatch):
+    """The calibration's settling fits every kept frame's pose ``settle_rounds`` times with
+    ``iterations`` steps on a whole cloud's stream, ``settle_rounds_told`` times with
+    ``settle_steps_told`` steps on a stream told its camera; ``fit_frame`` says which."""
+    steps, told_flags = [], []
+    fit_pose, settle_shape = fit.fit_pose, fit.settle_shape
+
+    def spy_fit_pose(*args, **kwargs):
+        steps.append(args[7].iterations)                      # the settings
+        return fit_pose(*args, **kwargs)
 
     def spy_settle(model, shape, frames, settings, told=False):
-        settled.append((len(frames), told))
+        told_flags.append(told)
         return settle_shape(model, shape, frames, settings, told)
 
-    monkeypatch.setattr(fit, "settle_shape", spy_settle)
-    _, rest, tpose, _, _, rotations, joints = posed_state(model, seed=3, turn=0.1)
+    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=3, turn=0.1)
     viewpoint = joints[0] + np.array([0.2, 0.3, 2.5])
     posed = fit.pose_model(model, rest, tpose, rotations, joints)
-    settings = fit.FitSettings(calibration_frames=2, calibration_frames_told=5,
-                               calibration_stride_told=2, settle_rounds=1)
-    for cloud, camera, kept, settles in (
-            (posed.points, None, [1, 2, 0, 0], [(2, False)]),
-            (posed.points[fit.seen_points(posed, viewpoint)], viewpoint, [1, 1, 2, 2, 3, 0],
-             [(3, True)])):
-        settled.clear()
+    seen = posed.points[fit.seen_points(posed, viewpoint)]
+    settings = fit.FitSettings(calibration_frames=2, settle_rounds=2, settle_rounds_told=3,
+                               settle_steps_told=1)
+    monkeypatch.setattr(fit, "fit_pose", spy_fit_pose)
+    for cloud, camera, expected in ((posed.points, None, [4] * 4), (seen, viewpoint, [1] * 6)):
+        frames = [(cloud, build_grid(cloud), local, root, camera)] * 2
+        steps.clear()
+        fit.settle_shape(model, np.zeros(len(model.points_basis)), frames, settings,
+                         camera is not None)
+        assert steps == expected
+    monkeypatch.setattr(fit, "settle_shape", spy_settle)
+    for cloud, camera in ((posed.points, None), (seen, viewpoint)):
         state, _ = fit.start_fit(model, settings, cloud, joints, camera)
-        counts = [len(state.calibration)]
-        for _ in kept[1:]:
-            state, _, _ = fit.fit_frame(model, settings, state, cloud, joints, camera)
-            counts.append(len(state.calibration))
-        assert counts == kept and settled == settles
+        fit.fit_frame(model, settings, state, cloud, joints, camera)
+    assert told_flags == [False, True]
 
 
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
