@@ -166,11 +166,10 @@ class FitSettings(NamedTuple):
     race_iterations: int = 2       # steps from each start before the best one goes on
     model_stride: int = 1          # every k-th model point meets the cloud (model -> cloud)
     calibration_frames: int = 15   # frames whose clouds calibrate the shape
-    settle_rounds: int = 3         # rounds of poses and shape on them all, after the last
-    settle_rounds_told: int = 40   # the same for a stream told its viewpoint, each round's
-    settle_steps_told: int = 1     # poses taking this many Gauss-Newton steps: from one side
-                                   # a leg's length and its bend along the ray converge slowly
-                                   # together (docs/single_view.md)
+    settle_rounds: int = 40        # rounds of poses and shape on them all, after the last,
+    settle_steps: int = 1          # each round's poses taking this many Gauss-Newton steps:
+                                   # a leg's length and its joints' bend converge slowly
+                                   # together (docs/source_fit.md)
     lost_leg_width: float = 0.1    # metres: robust width of the steps that find a lost lower
                                    # leg again (0: never looked for)
     lost_leg_distance: float = 0.08  # metres: a lower leg's model point this far from the
@@ -205,11 +204,11 @@ def check_fit_settings(settings):
         raise TypeError(f"fit_source must be a fit.FitSettings or None, got "
                         f"{type(settings).__name__}")
     for name in ("iterations", "cloud_points", "race_iterations", "model_stride",
-                 "calibration_frames", "settle_steps_told"):
+                 "calibration_frames", "settle_steps"):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"FitSettings.{name} must be an integer >= 1, got {value!r}")
-    for name in ("settle_rounds", "settle_rounds_told", "draw", "more_iterations"):
+    for name in ("settle_rounds", "draw", "more_iterations"):
         value = getattr(settings, name)
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"FitSettings.{name} must be an integer >= 0, got {value!r}")
@@ -1136,14 +1135,12 @@ def fit_shape(model, shape, frames, settings, width):
     return shape - np.linalg.solve(hessian, gradient)
 
 
-def settle_shape(model, shape, frames, settings, told=False):
-    """The calibration's last word: ``settings.settle_rounds`` rounds (``settle_rounds_told``
-    of ``settle_steps_told`` steps on a ``told`` stream) of every kept frame's pose fitted
-    again on the current shape (no pulls), then a shape step on them all."""
-    rounds, steps = ((settings.settle_rounds_told, settings.settle_steps_told) if told
-                     else (settings.settle_rounds, settings.iterations))
-    posing = settings._replace(iterations=steps)
-    for _ in range(rounds):
+def settle_shape(model, shape, frames, settings):
+    """The calibration's last word: ``settings.settle_rounds`` rounds of every kept frame's
+    pose fitted again on the current shape (``settle_steps`` steps, no pulls), then a shape
+    step on them all."""
+    posing = settings._replace(iterations=settings.settle_steps)
+    for _ in range(settings.settle_rounds):
         rest, tpose_joints = shaped(model, shape)
         frames = [(cloud, grid, *fit_pose(model, rest, tpose_joints, cloud, grid, local, root,
                                           posing, viewpoint=viewpoint)[:2], viewpoint)
@@ -1325,7 +1322,7 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
         calibration = calibration + ((cloud, grid, local, root, viewpoint),)
         shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
         if t == settings.calibration_frames - 1:
-            shape = settle_shape(model, shape, calibration, settings, viewpoint is not None)
+            shape = settle_shape(model, shape, calibration, settings)
             rest, tpose_joints = shaped(model, shape)
             local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid,
                                                  local, root, settings, pulls, viewpoint)

@@ -862,39 +862,32 @@ def test_combined_pull_sums_per_joint_and_skips_pulls_that_are_off():
     assert not total.any() and np.isfinite(goal).all()
 
 
-def test_a_told_stream_settles_by_its_own_rounds(model, monkeypatch):
+def test_the_settling_fits_every_kept_pose_each_round_by_its_own_steps(model, monkeypatch):
     """The calibration's settling fits every kept frame's pose ``settle_rounds`` times with
-    ``iterations`` steps on a whole cloud's stream, ``settle_rounds_told`` times with
-    ``settle_steps_told`` steps on a stream told its camera; ``fit_frame`` says which."""
-    steps, told_flags = [], []
-    fit_pose, settle_shape = fit.fit_pose, fit.settle_shape
+    ``settle_steps`` Gauss-Newton steps each, whether or not the stream was told its camera,
+    and then the shape on them."""
+    steps = []
+    fit_pose = fit.fit_pose
 
     def spy_fit_pose(*args, **kwargs):
         steps.append(args[7].iterations)                      # the settings
         return fit_pose(*args, **kwargs)
 
-    def spy_settle(model, shape, frames, settings, told=False):
-        told_flags.append(told)
-        return settle_shape(model, shape, frames, settings, told)
-
-    _, rest, tpose, local, root, rotations, joints = posed_state(model, seed=3, turn=0.1)
+    shape, rest, tpose, local, root, rotations, joints = posed_state(model, seed=3, turn=0.1)
     viewpoint = joints[0] + np.array([0.2, 0.3, 2.5])
     posed = fit.pose_model(model, rest, tpose, rotations, joints)
     seen = posed.points[fit.seen_points(posed, viewpoint)]
-    settings = fit.FitSettings(calibration_frames=2, settle_rounds=2, settle_rounds_told=3,
-                               settle_steps_told=1)
+    settings = fit.FitSettings(settle_rounds=3, settle_steps=2)
     monkeypatch.setattr(fit, "fit_pose", spy_fit_pose)
-    for cloud, camera, expected in ((posed.points, None, [4] * 4), (seen, viewpoint, [1] * 6)):
+    for cloud, camera in ((posed.points, None), (seen, viewpoint)):
         frames = [(cloud, build_grid(cloud), local, root, camera)] * 2
         steps.clear()
-        fit.settle_shape(model, np.zeros(len(model.points_basis)), frames, settings,
-                         camera is not None)
-        assert steps == expected
-    monkeypatch.setattr(fit, "settle_shape", spy_settle)
-    for cloud, camera in ((posed.points, None), (seen, viewpoint)):
-        state, _ = fit.start_fit(model, settings, cloud, joints, camera)
-        fit.fit_frame(model, settings, state, cloud, joints, camera)
-    assert told_flags == [False, True]
+        start = 0.9 * shape
+        settled = fit.settle_shape(model, start, frames, settings)
+        assert steps == [2] * 6
+        # on the model's own surface at the true pose, the shape comes back to the truth
+        error = np.linalg.norm(fit.shaped(model, settled)[1] - tpose, axis=1).mean()
+        assert error < 0.7 * np.linalg.norm(fit.shaped(model, start)[1] - tpose, axis=1).mean()
 
 
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
