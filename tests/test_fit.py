@@ -870,7 +870,7 @@ def test_the_settling_fits_every_kept_pose_each_round_by_its_own_steps(model, mo
     fit_pose = fit.fit_pose
 
     def spy_fit_pose(*args, **kwargs):
-        steps.append(args[7].iterations)                      # the settings
+        steps.append((args[7].iterations, kwargs.get("viewpoint")))   # settings, camera
         return fit_pose(*args, **kwargs)
 
     shape, rest, tpose, local, root, rotations, joints = posed_state(model, seed=3, turn=0.1)
@@ -884,7 +884,8 @@ def test_the_settling_fits_every_kept_pose_each_round_by_its_own_steps(model, mo
         steps.clear()
         start = 0.9 * shape
         settled = fit.settle_shape(model, start, frames, settings)
-        assert steps == [2] * 6
+        assert [count for count, _ in steps] == [2] * 6
+        assert all(told is camera for _, told in steps)
         # on the model's own surface at the true pose, the shape comes back to the truth
         error = np.linalg.norm(fit.shaped(model, settled)[1] - tpose, axis=1).mean()
         assert error < 0.7 * np.linalg.norm(fit.shaped(model, start)[1] - tpose, axis=1).mean()
@@ -947,7 +948,7 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
     with pytest.raises(TypeError, match="refine must be True or False, got 'no'"):
         Retargeter(tiny_weights, PipelineConfig(refine="no"))
     for field, value in (("iterations", 0), ("model_stride", 0), ("robust_width", 0.0),
-                         ("reading_pull", -1.0), ("settle_rounds", -1),
+                         ("reading_pull", -1.0), ("settle_rounds", -1), ("settle_steps", 0),
                          ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
