@@ -1323,12 +1323,13 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
     if t < settings.calibration_frames:
         calibration = calibration + ((cloud, grid, local, root, viewpoint),)
         shape = fit_shape(model, shape, calibration, settings, settings.robust_width)
-        if t == settings.calibration_frames - 1:
-            shape = settle_shape(model, shape, calibration, settings)
-            rest, tpose_joints = shaped(model, shape)
-            local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid,
-                                                 local, root, settings, pulls, viewpoint)
-    elif calibration:
+    if calibration and t >= settings.calibration_frames - 1:
+        # The calibration's last frame settles it; if that frame had no body, the next that
+        # has one does (the settling is most of the calibration: it must not be skipped).
+        shape = settle_shape(model, shape, calibration, settings)
+        rest, tpose_joints = shaped(model, shape)
+        local, root, joints, cost = fit_pose(model, rest, tpose_joints, cloud, grid, local,
+                                             root, settings, pulls, viewpoint)
         calibration = ()                 # calibrated: the clouds are no longer needed
     return (FitState(t + 1, shape, local, root, np.stack([last if moving else joints, joints]),
                      calibration, cost),

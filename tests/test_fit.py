@@ -891,6 +891,28 @@ def test_the_settling_fits_every_kept_pose_each_round_by_its_own_steps(model, mo
         assert error < 0.7 * np.linalg.norm(fit.shaped(model, start)[1] - tpose, axis=1).mean()
 
 
+def test_a_calibration_whose_last_frame_is_lost_settles_on_the_next(model, monkeypatch):
+    settled = []
+    settle_shape = fit.settle_shape
+
+    def spy(model, shape, frames, settings):
+        settled.append(len(frames))
+        return settle_shape(model, shape, frames, settings)
+
+    monkeypatch.setattr(fit, "settle_shape", spy)
+    _, rest, tpose, _, _, rotations, joints = posed_state(model, seed=5, turn=0.1)
+    cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
+    settings = fit.FitSettings(calibration_frames=3, settle_rounds=1)
+    state, _ = fit.start_fit(model, settings, cloud, joints)
+    kept = []
+    for shift in (0.0, 3.0, 0.0, 0.0):                  # frame 2 misses the body by 3 m
+        state, _, _ = fit.fit_frame(model, settings, state, cloud + [shift, 0.0, 0.0], joints)
+        kept.append((len(state.calibration), len(settled), state.cost > fit.LOST_COST))
+    # frame 2, the calibration's last, is lost: frame 3 settles on the two frames kept
+    assert kept == [(2, 0, False), (2, 0, True), (0, 1, False), (0, 1, False)]
+    assert settled == [2]
+
+
 def test_start_fit_calibrates_the_shape_from_one_cloud(model):
     shape, rest, tpose, _, _, rotations, joints = posed_state(model, seed=9, turn=0.1)
     cloud = fit.pose_model(model, rest, tpose, rotations, joints).points
