@@ -29,7 +29,8 @@ the trial).
 
 Each cloud set runs each preset (``pipeline.PRESETS``: regressed, fitted) online,
 ``Retargeter.step`` a frame at a time, one fresh stream a trial and garment, onto the trial's
-target (its T-pose points; SKR and SKIN find its rig, as ``accuracy.py``'s model row). Scored
+target (its T-pose mesh; SKR and SKIN find its rig, its legs read from its surface, as
+``accuracy.py``'s model row). Scored
 with ``accuracy.sequence_metrics`` (``minretarget.metrics.evaluate``) against the target's truth,
 pooled over trials weighted by frames (``accuracy.frame_weighted``); beside them the source
 skeleton SMRM saw against the true source joints (``metrics.joint_errors``: all joints, torso,
@@ -149,7 +150,8 @@ def warm_up(weights, presets, sequence, frames=20):
     include numba's compilation."""
     for preset in presets:
         retargeter = Retargeter(weights, preset)
-        retargeter.set_target(sequence["target_tpose_points"])
+        retargeter.set_target(sequence["target_tpose_points"],
+                              sequence["target_faces"])
         run_stream(retargeter, sequence["source_points"][:frames])
 
 
@@ -342,7 +344,8 @@ def main(argv=None):
         retargeters = {}
         for preset in presets:
             retargeters[preset] = Retargeter(weights, preset)
-            retargeters[preset].set_target(sequence["target_tpose_points"])
+            retargeters[preset].set_target(sequence["target_tpose_points"],
+                                           sequence["target_faces"])
         metrics, feet = score_trial(retargeters, clouds, sequence)
         results.append({"sequence": str(sequence["name"]),
                         "category": str(sequence["category"]),

@@ -30,7 +30,8 @@ Two camera rigs (``--cameras``):
 Each view runs each preset (``pipeline.PRESETS``: regressed, fitted; and ``fitted+viewpoint``,
 the fitted preset told each frame's camera position) online, ``Retargeter.step`` a frame at
 a time, one fresh stream a trial and view, onto the trial's target (its T-pose
-points; SKR and SKIN find its rig, as ``accuracy.py``'s model row). Scored with
+mesh; SKR and SKIN find its rig, its legs read from its surface, as ``accuracy.py``'s model
+row). Scored with
 ``accuracy.sequence_metrics`` (``minretarget.metrics.evaluate``) against the target's truth and
 pooled over trials weighted by frames (``accuracy.frame_weighted``); also the source skeleton's
 error (what SMRM was fed, against the true source joints, ``metrics.joint_errors``) and, where
@@ -270,7 +271,8 @@ def main(argv=None):
         retargeters = {}
         for preset in args.presets:
             retargeters[preset] = Retargeter(weights, "fitted" if preset == TOLD else preset)
-            retargeters[preset].set_target(sequence["target_tpose_points"])
+            retargeters[preset].set_target(sequence["target_tpose_points"],
+                                           sequence["target_faces"])
         results.append({"sequence": str(sequence["name"]),
                         "category": str(sequence["category"]),
                         "frames": len(sequence["source_points"]),
