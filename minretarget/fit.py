@@ -13,7 +13,8 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    joints bend trade off against each other, and settle together only over many rounds);
    then they are kept, so bone lengths are constant over the rest of the stream. The
    calibration is the fit's slow part: each of its frames steps the shape on all the frames
-   kept so far, and the last one settles them all.
+   kept so far, and the last one (or, if it has no body, the next that has) settles them
+   all.
 2. Pose. ``iterations`` Gauss-Newton steps (damped, each joint's turn capped) on the root
    translation and one world-frame rotation vector per joint (which turns the joint's subtree
    about it), minimising robust (Geman-McClure) point-to-plane distances from each cloud
