@@ -32,7 +32,9 @@ surface meets the cloud, frame after frame, and hands on the model's joints:
    better one explains the cloud poorly (``swap_legs_cost``), or the reading puts a lower
    leg's joint far from the motion's prediction (``swap_legs_distance``; only after a frame
    with the body), the reading with its lower legs swapped is a third start (SKR reads some
-   crossed legs swapped). When the
+   crossed legs swapped); it does not win where a garment covers the thighs at both poses
+   (``covered_thighs``: a coat's tube hides them, and then a swap meets the cloud as well as
+   the truth does). When the
    better one leaves cloud points far from the model's legs (``stray_points``,
    ``stray_share``: a foot raised across the other knee, the fit's shin left lying on the
    other leg; a thigh raised in a pirouette), each thigh turned at its hip and each shin at
@@ -92,6 +94,9 @@ _LOWER_LEGS = np.full(NUM_JOINTS, -1, np.int64)
 for _side, _name in enumerate(("left", "right")):
     for _joint in ("knee", "ankle", "foot"):
         _LOWER_LEGS[JOINT_INDEX[f"{_name}_{_joint}"]] = _side
+# Each hip joint's thigh (0 left, 1 right, -1 any other bone): ``lost_legs`` on thighs.
+_THIGHS = np.full(NUM_JOINTS, -1, np.int64)
+_THIGHS[JOINT_INDEX["left_hip"]], _THIGHS[JOINT_INDEX["right_hip"]] = 0, 1
 # The joints whose bones are the legs' (thigh, shin, foot, toes): ``stray_points``.
 _LEGS = np.zeros(NUM_JOINTS, np.bool_)
 for _name in ("left", "right"):
@@ -185,6 +190,14 @@ class FitSettings(NamedTuple):
     swap_legs_distance: float = 0.1  # metres: ... and so is a frame whose reading puts a lower
                                      # leg's joint this far from the motion's (0: not for
                                      # that)
+    swap_legs_hidden: float = 0.04  # metres: ... but it does not win where a garment
+    swap_legs_covered: float = 0.1  # covers the thighs at its pose and at the better start's
+                                    # (a thigh with more than lost_leg_share of its model
+                                    # points farther than swap_legs_hidden from the cloud,
+                                    # and neither with that share farther than
+                                    # swap_legs_covered): only the thighs tell the legs
+                                    # apart, and under a coat both starts meet it alike
+                                    # (swap_legs_hidden 0: no such condition)
     stray_share: float = 0.03      # a frame whose cloud has more than this share of points
                                    # farther than lost_leg_distance from the fitted model,
                                    # nearest its legs, also tries each thigh and shin aimed
@@ -217,8 +230,8 @@ def check_fit_settings(settings):
             raise ValueError(f"FitSettings.{name} must be an integer >= 0, got {value!r}")
     for name in ("robust_width", "model_to_cloud", "reading_pull", "reading_width",
                  "motion_pull", "reseed_distance", "lost_leg_width", "lost_leg_distance",
-                 "swap_legs_cost", "swap_legs_distance", "stray_share", "still_falling",
-                 "still_falling_told"):
+                 "swap_legs_cost", "swap_legs_distance", "swap_legs_hidden",
+                 "swap_legs_covered", "stray_share", "still_falling", "still_falling_told"):
         value = getattr(settings, name)
         positive = name in ("robust_width", "lost_leg_distance")
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
@@ -958,12 +971,15 @@ def apply_step(local, root, rotations, step):
     return new, root + step[:3]
 
 
-def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far, viewpoint=None):
+def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far, viewpoint=None,
+              parts=_LOWER_LEGS):
     """Per lower leg (left, right), the share of its model points (shin and foot: those whose
     heaviest skinning bone is the knee's, the ankle's or the foot's) that lie farther than
     ``far`` metres from the cloud (``cloud_grid``, ``nearest.build_grid``) at the pose
     ``local`` (J, 3, 3), ``root`` (3,) of the shaped model (``shaped``) -> (2,) float64.
     A leg mostly in empty space is lost: the fit's robust terms no longer reach its cloud.
+    ``parts``: (J,) each bone's side (0 left, 1 right, -1 neither) if not the lower legs'
+    (``_THIGHS``: the thighs, whose points far from the cloud are hidden, under a coat).
     ``viewpoint``: None, or the (3,) camera that saw the cloud: only the points it would see
     count (the back of a shin seen from the front is far from every cloud point)."""
     local = np.ascontiguousarray(local, np.float64)
@@ -976,10 +992,26 @@ def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far, viewpoint
             seen_points(pose_model(model, rest, tpose_joints, rotations, joints), viewpoint))
     shares = np.empty(2)
     _lost_legs_kernel(rest, tpose_joints, model.bone_index, model.bone_weight, rotations,
-                      joints, _LOWER_LEGS, seen, cloud_grid.points, cloud_grid.origin,
+                      joints, parts, seen, cloud_grid.points, cloud_grid.origin,
                       cloud_grid.cell, cloud_grid.dims, cloud_grid.order, cloud_grid.starts,
                       float(far), shares)
     return shares
+
+
+def covered_thighs(model, rest, tpose_joints, local, root, cloud_grid, settings,
+                   viewpoint=None):
+    """Whether a garment covers the thighs at the pose ``local`` (J, 3, 3), ``root`` (3,) of
+    the shaped model: a thigh has more than ``settings.lost_leg_share`` of its model points
+    farther than ``swap_legs_hidden`` from the cloud (``cloud_grid``), yet neither has that
+    share farther than ``swap_legs_covered`` (the cloud passes near them, not on them: a coat's
+    tube 3-8 cm off; where the thighs are merely cut away, nothing is near). False where
+    ``swap_legs_hidden`` is 0. ``viewpoint`` as ``lost_legs``'s."""
+    if settings.swap_legs_hidden == 0:
+        return False
+    def far(distance):
+        return lost_legs(model, rest, tpose_joints, local, root, cloud_grid, distance,
+                         viewpoint, _THIGHS).max() > settings.lost_leg_share
+    return far(settings.swap_legs_hidden) and not far(settings.swap_legs_covered)
 
 
 def stray_points(model, rest, tpose_joints, local, root, cloud_grid, far):
@@ -1282,14 +1314,19 @@ def fit_frame(model, settings, state, cloud, reading, viewpoint=None, reading_de
         # The better start explains the cloud poorly, or SKR's legs are not where the motion
         # puts them: SKR may have read the legs swapped (a leg across the other, the body
         # turned), and the track may have followed. The reading with its legs swapped is
-        # fitted too; if it meets the cloud better, it is this frame's reading from here on.
+        # fitted too; if it meets the cloud better, it is this frame's reading from here on,
+        # unless a garment covers both poses' thighs: only they tell the legs apart, and a
+        # wrong swap, once won, would win again frame after frame.
         swapped = reading[_SWAPPED_LEGS]
         swapped_pulls = ((reading_weight(settings, np.linalg.norm(swapped - predicted, axis=1)),
                           swapped),) + pulls[1:]
         other = fit_pose(model, rest, tpose_joints, cloud, grid,
                          local_from_joints(swapped, tpose_joints), swapped[0].copy(), race,
                          swapped_pulls, viewpoint)
-        if other[3] < cost:
+        if other[3] < cost and not all(
+                covered_thighs(model, rest, tpose_joints, pose_local, pose_root, grid,
+                               settings, viewpoint)
+                for pose_local, pose_root in ((local, root), other[:2])):
             (local, root, joints, cost), pulls, reseeded = other, swapped_pulls, True
     starts = [(local, root, joints, cost)]
     if settings.stray_share > 0:

@@ -331,6 +331,13 @@ def test_lost_legs_matches_its_twin(model):
     own = fit.pose_model(model, rest, tpose, rotations, joints).points
     np.testing.assert_array_equal(
         fit.lost_legs(model, rest, tpose, local, root, build_grid(own), 0.02), [0, 0])
+    # the thighs' share (the swapped start's gate), against the same brute force
+    for far in (0.02, 0.08):
+        got = fit.lost_legs(model, rest, tpose, local, root, build_grid(cloud), far,
+                            parts=fit._THIGHS)
+        want = twins.lost_legs(model, rest, tpose, rotations, joints, cloud, far,
+                               bones=("hip",))
+        np.testing.assert_allclose(got, want, atol=1e-12)
 
 
 VIEWPOINTS = ((0.1, 1.2, 2.5), (2.5, 1.3, -0.2), (0.3, 1.0, -2.4), (1.5, 2.0, 1.5))
@@ -805,6 +812,40 @@ def test_legs_read_swapped_are_swapped_back(model):
     assert error(fitted(joints, 0.01)) < 0.015
 
 
+def test_legs_read_swapped_stay_where_a_garment_covers_the_thighs(model):
+    """The scene above with the thighs' points moved 6 cm out along their normals (a tube
+    around them, as a coat's): only the thighs tell the legs apart, and a garment hides them,
+    so the swapped start may not win and the track keeps its legs; without the gate
+    (``swap_legs_hidden`` 0) it wins as above. With the thighs' points cut away instead
+    (nothing near them: not a garment) it wins with the gate too."""
+    shape, tpose, root, truth, joints, cloud = legs_apart_scene(model)
+    rest, _ = fit.shaped(model, shape)
+    posed = fit.pose_model(model, rest, tpose, *fit.forward(truth, root, tpose))
+    heaviest = model.bone_index[np.arange(len(rest)), model.bone_weight.argmax(axis=1)]
+    thighs = np.isin(heaviest, [fit.JOINT_INDEX["left_hip"], fit.JOINT_INDEX["right_hip"]])
+    assert 0.05 < thighs.mean() < 0.3
+    covered = cloud.copy()
+    covered[thighs] += 0.06 * posed.normals[thighs]
+    swapped = joints[fit._SWAPPED_LEGS]
+
+    def error(points, **gate):
+        local = fit.local_from_joints(swapped, tpose)            # the track read swapped
+        _, held = fit.forward(local, root, tpose)
+        state = fit.FitState(30, shape, local, root, np.stack([held, held]), (), 0.03)
+        settings = fit.FitSettings(swap_legs_cost=0.01, swap_legs_distance=0.0, **gate)
+        found = fit.fit_frame(model, settings, state, points, swapped)[1]
+        return np.linalg.norm(found - joints, axis=1).mean()
+
+    assert error(covered, swap_legs_hidden=0.0) < 0.02
+    assert error(covered) > 0.1
+    assert error(cloud[~thighs]) < 0.015
+    grid = build_grid(covered)
+    local = fit.local_from_joints(joints, tpose)
+    assert fit.covered_thighs(model, rest, tpose, local, root, grid, fit.FitSettings())
+    assert not fit.covered_thighs(model, rest, tpose, local, root, build_grid(cloud),
+                                  fit.FitSettings())
+
+
 def test_reading_weight_falls_with_the_distance_from_the_motion():
     """Geman-McClure in the distance between each joint's reading and its prediction: the
     full pull where they agree, a quarter at ``reading_width``, almost none ten times as far;
@@ -974,7 +1015,9 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("lost_leg_width", -0.1), ("lost_leg_distance", 0.0),
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
-                         ("swap_legs_distance", float("nan")), ("draw", -1), ("draw", 1.5),
+                         ("swap_legs_distance", float("nan")), ("swap_legs_hidden", -0.01),
+                         ("swap_legs_covered", float("inf")),
+                         ("draw", -1), ("draw", 1.5),
                          ("more_iterations", -1), ("still_falling", -0.001),
                          ("still_falling_told", -0.001)):
         with pytest.raises(ValueError, match=f"FitSettings.{field} must be"):

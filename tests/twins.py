@@ -338,11 +338,12 @@ def body_model_pose(model, rest, tpose, rotations, joints):
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True), lever, reach
 
 
-def lost_legs(model, rest, tpose, rotations, joints, cloud, far, seen=None):
+def lost_legs(model, rest, tpose, rotations, joints, cloud, far, seen=None,
+              bones=("knee", "ankle", "foot")):
     """The source fit's lost lower legs (minretarget.fit.lost_legs) by brute force: per leg
     (left, right), the share of the model points whose heaviest bone is its knee, ankle or
-    foot (and that are ``seen`` (Q,) bool, if given) that lie farther than ``far`` from every
-    cloud point -> (2,)."""
+    foot (or the side's ``bones``: ("hip",), its thigh) (and that are ``seen`` (Q,) bool, if
+    given) that lie farther than ``far`` from every cloud point -> (2,)."""
     from minretarget.conventions import JOINT_INDEX
     points = body_model_pose(model, rest, tpose, rotations, joints)[0]
     seen = np.ones(len(points), bool) if seen is None else seen
@@ -351,7 +352,7 @@ def lost_legs(model, rest, tpose, rotations, joints, cloud, far, seen=None):
     shares = []
     for side in ("left", "right"):
         leg = seen & np.isin(heaviest, [JOINT_INDEX[f"{side}_{j}"]
-                                        for j in ("knee", "ankle", "foot")])
+                                        for j in bones])
         shares.append(float((distance[leg] > far).mean()))
     return np.array(shares)
 
