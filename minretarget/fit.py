@@ -197,7 +197,8 @@ class FitSettings(NamedTuple):
                                     # and neither with that share farther than
                                     # swap_legs_covered): only the thighs tell the legs
                                     # apart, and under a coat both starts meet it alike
-                                    # (swap_legs_hidden 0: no such condition)
+                                    # (swap_legs_hidden 0: no such condition; else
+                                    # swap_legs_covered must be the larger)
     stray_share: float = 0.03      # a frame whose cloud has more than this share of points
                                    # farther than lost_leg_distance from the fitted model,
                                    # nearest its legs, also tries each thigh and shin aimed
@@ -237,6 +238,10 @@ def check_fit_settings(settings):
         if not np.isfinite(value) or value < 0 or (positive and value == 0):
             raise ValueError(f"FitSettings.{name} must be a finite number "
                              f"{'> 0' if positive else '>= 0'}, got {value!r}")
+    hidden, covered = settings.swap_legs_hidden, settings.swap_legs_covered
+    if hidden > 0 and not covered > hidden:
+        raise ValueError(f"FitSettings.swap_legs_covered must be > swap_legs_hidden "
+                         f"({hidden!r}) where that is on, got {covered!r}")
     share = settings.lost_leg_share
     if not np.isfinite(share) or not 0 < share <= 1:
         raise ValueError(f"FitSettings.lost_leg_share must be a number in (0, 1], got "
@@ -818,16 +823,16 @@ def _stray_points_kernel(rest, tpose, bone_index, bone_weight, rotations, joints
 
 
 @kernel
-def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, lower_legs,
+def _lost_legs_kernel(rest, tpose, bone_index, bone_weight, rotations, joints, parts,
                       seen, cloud, cloud_origin, cloud_cell, cloud_dims, cloud_order,
                       cloud_starts, far, shares):
-    """``lost_legs`` on arrays: shares (2,) gets, per lower leg, the share of its model points
-    (those whose heaviest bone is one of the leg's, ``lower_legs`` (J,) 0 or 1, else -1, and
+    """``lost_legs`` on arrays: shares (2,) gets, per side, the share of its model points
+    (those whose heaviest bone is one of the side's, ``parts`` (J,) 0 or 1, else -1, and
     ``seen`` (Q,) bool), posed by LBS, that lie farther than ``far`` from the cloud."""
     leg = np.empty(rest.shape[0], np.int64)
     count = 0
     for q in range(rest.shape[0]):
-        leg[q] = lower_legs[_heaviest_bone(bone_index, bone_weight, q)] if seen[q] else -1
+        leg[q] = parts[_heaviest_bone(bone_index, bone_weight, q)] if seen[q] else -1
         if leg[q] >= 0:
             count += 1
     points = np.empty((count, 3))
@@ -974,9 +979,10 @@ def apply_step(local, root, rotations, step):
 def lost_legs(model, rest, tpose_joints, local, root, cloud_grid, far, viewpoint=None,
               parts=_LOWER_LEGS):
     """Per lower leg (left, right), the share of its model points (shin and foot: those whose
-    heaviest skinning bone is the knee's, the ankle's or the foot's) that lie farther than
-    ``far`` metres from the cloud (``cloud_grid``, ``nearest.build_grid``) at the pose
-    ``local`` (J, 3, 3), ``root`` (3,) of the shaped model (``shaped``) -> (2,) float64.
+    heaviest skinning bone is the knee's, the ankle's or the foot's; or per side of ``parts``)
+    that lie farther than ``far`` metres from the cloud (``cloud_grid``,
+    ``nearest.build_grid``) at the pose ``local`` (J, 3, 3), ``root`` (3,) of the shaped model
+    (``shaped``) -> (2,) float64.
     A leg mostly in empty space is lost: the fit's robust terms no longer reach its cloud.
     ``parts``: (J,) each bone's side (0 left, 1 right, -1 neither) if not the lower legs'
     (``_THIGHS``: the thighs, whose points far from the cloud are hidden, under a coat).

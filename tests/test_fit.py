@@ -1016,7 +1016,8 @@ def test_retargeter_refuses_arguments_of_another_kind(tiny_weights):
                          ("lost_leg_share", 0.0), ("lost_leg_share", 1.5),
                          ("swap_legs_cost", -0.01), ("reading_width", -0.1),
                          ("swap_legs_distance", float("nan")), ("swap_legs_hidden", -0.01),
-                         ("swap_legs_covered", float("inf")),
+                         ("swap_legs_covered", float("inf")), ("swap_legs_covered", 0.0),
+                         ("swap_legs_covered", 0.04),
                          ("draw", -1), ("draw", 1.5),
                          ("more_iterations", -1), ("still_falling", -0.001),
                          ("still_falling_told", -0.001)):
