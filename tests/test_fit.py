@@ -846,6 +846,28 @@ def test_legs_read_swapped_stay_where_a_garment_covers_the_thighs(model):
                                   fit.FitSettings())
 
 
+def test_the_swapped_start_is_refused_only_where_both_poses_thighs_are_covered(model,
+                                                                           monkeypatch):
+    """The scene above, the track read swapped, with ``covered_thighs`` answering in turn for
+    the better start's pose and the swapped start's: the swap wins unless both are covered."""
+    shape, tpose, root, _, joints, cloud = legs_apart_scene(model)
+    swapped = joints[fit._SWAPPED_LEGS]
+
+    def error(answers):
+        replies = iter(answers)
+        monkeypatch.setattr(fit, "covered_thighs", lambda *args: next(replies))
+        local = fit.local_from_joints(swapped, tpose)
+        _, held = fit.forward(local, root, tpose)
+        state = fit.FitState(30, shape, local, root, np.stack([held, held]), (), 0.03)
+        settings = fit.FitSettings(swap_legs_cost=0.01, swap_legs_distance=0.0)
+        found = fit.fit_frame(model, settings, state, cloud, swapped)[1]
+        return np.linalg.norm(found - joints, axis=1).mean()
+
+    assert error([True, True]) > 0.1
+    assert error([True, False]) < 0.015
+    assert error([False, True]) < 0.015
+
+
 def test_reading_weight_falls_with_the_distance_from_the_motion():
     """Geman-McClure in the distance between each joint's reading and its prediction: the
     full pull where they agree, a quarter at ``reading_width``, almost none ten times as far;
